@@ -1,0 +1,5 @@
+import sys
+
+from slipd.cli import main
+
+sys.exit(main())

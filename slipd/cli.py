@@ -1,0 +1,79 @@
+"""The ``slipd`` command: one entry point, one module per subcommand (slipd.commands.*).
+
+Subcommand modules are imported lazily, so ``slipd --help`` stays fast and a subcommand whose
+optional dependency is missing says so instead of breaking the others.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from slipd.errors import SlipdError
+
+#: name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("slipd.commands.run", "run the real-time daemon on a CAN bus (or --demo)"),
+    "replay": ("slipd.commands.replay", "replay logs offline through the estimators, or "
+               "play them onto a bus in real time"),
+    "sim": ("slipd.commands.sim", "simulate scenarios: candump log + ground truth"),
+    "eval": ("slipd.commands.eval", "evaluate estimators on logs against ground truth"),
+    "stats": ("slipd.commands.stats", "show a running daemon's latency statistics"),
+    "import": ("slipd.commands.import_data", "turn recorded CSV/MAT signals into a candump log"),
+    "bench": ("slipd.commands.bench", "run the performance benchmarks"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="slipd",
+        description="Real-time vehicle sideslip estimation: CAN in, sideslip frames out.",
+    )
+    parser.add_argument("--version", action="version", version=_version())
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module_name, help_text) in COMMANDS.items():
+        command = sub.add_parser(name, help=help_text, description=help_text)
+        command.set_defaults(_module=module_name)
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name and exc.name.startswith("slipd."):
+                command.set_defaults(_missing=f"{name} is not available in this build")
+                continue
+            command.set_defaults(_missing=f"{name} needs {exc.name}: pip install 'slipd[dev]'")
+            continue
+        module.add_arguments(command)
+    return parser
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"slipd {version('slipd')}"
+    except PackageNotFoundError:
+        return "slipd (not installed)"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 2
+    if getattr(args, "_missing", None):
+        print(f"slipd: {args._missing}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(args._module)
+    try:
+        return int(module.run(args) or 0)
+    except SlipdError as exc:
+        print(f"slipd {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

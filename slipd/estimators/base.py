@@ -1,0 +1,102 @@
+"""The estimator contract and the registry of methods by name.
+
+Every method lives in its own module ``slipd/estimators/<name>.py`` and exposes:
+
+``PARAMS``
+    an ``enum.IntEnum`` naming the elements of its float64 params vector;
+``DEFAULTS``
+    ``{field_name: value}`` with the paper's published values (the docstring cites the table);
+``init(params, vehicle) -> np.ndarray``
+    the float64 state vector at start (or at reset);
+``step(state, u, params, vehicle, dt, out)``
+    ``@numba.njit(cache=True)``; reads the per-tick input ``u`` (see ``slipd.channels``: values,
+    validity flags at ``VALID + ch``, tick time at ``U_TIME``), advances ``state`` in place and
+    writes every element of ``out`` (``slipd.channels.Out``). It allocates nothing;
+``run_ticks(state, U, params, vehicle, dt, OUT)``
+    ``@numba.njit(cache=True)``; the batch loop ``for k: step(state, U[k], ..., OUT[k])``.
+    It lives beside ``step`` because numba cannot cache a kernel that takes another jitted
+    function as an argument or closes over one (measured: it recompiles in every process).
+
+A method writes ``Status.NOT_CONVERGED`` until it has settled, ``Status.UNAVAILABLE`` when a
+sensor it needs is absent (it never invents the data), ``Status.RESET`` on the tick it resets
+itself. The daemon and the batch engine add the input-supervision bits and decide VALID.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import ModuleType
+
+import numpy as np
+
+from slipd.errors import ConfigError
+
+#: name -> module path. Plain dict, lazy imports: importing slipd must not compile anything.
+REGISTRY: dict[str, str] = {
+    "zero": "slipd.estimators.zero",
+}
+
+
+@dataclass(frozen=True)
+class Method:
+    """A loaded estimator: its module's functions and a params vector."""
+
+    name: str
+    module: ModuleType
+    params: np.ndarray
+
+    @property
+    def step(self) -> Callable:
+        return self.module.step
+
+    @property
+    def run_ticks(self) -> Callable:
+        return self.module.run_ticks
+
+    def init(self, vehicle: np.ndarray) -> np.ndarray:
+        return self.module.init(self.params, vehicle)
+
+
+def available() -> list[str]:
+    """Names of the registered methods, in registry order."""
+    return list(REGISTRY)
+
+
+def make_params(module: ModuleType, overrides: dict[str, float] | None = None) -> np.ndarray:
+    """The params vector of ``module`` from its DEFAULTS with ``overrides`` applied by name."""
+    fields = module.PARAMS
+    values = dict(module.DEFAULTS)
+    for key, value in (overrides or {}).items():
+        if key not in values:
+            raise ConfigError(
+                f"unknown parameter {key!r} for {module.__name__.rsplit('.', 1)[-1]}; "
+                f"expected one of: {', '.join(sorted(values))}"
+            )
+        values[key] = float(value)
+    missing = [f.name for f in fields if f.name.lower() not in values and f.name not in values]
+    if missing:
+        raise ConfigError(f"{module.__name__}: DEFAULTS lacks {missing}")
+    params = np.empty(len(fields), dtype=np.float64)
+    for f in fields:
+        params[f] = values.get(f.name.lower(), values.get(f.name))
+    return params
+
+
+def required_channels(method: Method, profile) -> tuple:
+    """Channels whose loss makes ``method``'s output invalid: the method's own REQUIRED
+    (default: the core IMU/wheel/steer set) that the profile maps, plus the profile's
+    channels marked required."""
+    from slipd.channels import CORE_CHANNELS
+
+    own = getattr(method.module, "REQUIRED", CORE_CHANNELS)
+    return tuple(sorted(set(own) | set(profile.required_channels)))
+
+
+def load(name: str, overrides: dict[str, float] | None = None) -> Method:
+    """Load method ``name`` with its default params (and ``overrides`` by field name)."""
+    if name not in REGISTRY:
+        raise ConfigError(f"unknown estimator {name!r}; available: {', '.join(available())}")
+    module = importlib.import_module(REGISTRY[name])
+    return Method(name=name, module=module, params=make_params(module, overrides))

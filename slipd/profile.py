@@ -1,0 +1,342 @@
+"""Vehicle profiles: the car's parameters and how its CAN bus maps onto slipd's channels.
+
+A profile is a TOML file (see ``slipd/dbc/default.toml`` for the annotated reference).
+Loading validates every key and fails with a :class:`ConfigError` that names the file, the
+key and what was expected; nothing unknown is silently ignored (a typo in a key would
+otherwise leave a default in force on a car).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slipd.channels import CORE_CHANNELS, N_VEH, In, Veh
+from slipd.errors import ConfigError
+
+PROFILE_DIR = Path(__file__).resolve().parent / "dbc"
+
+#: Unit name -> factor to SI. The channel's SI unit follows from the channel (In docs).
+UNITS: dict[str, float] = {
+    "": 1.0,
+    "1": 1.0,
+    "m/s^2": 1.0,
+    "m/s2": 1.0,
+    "g": 9.80665,
+    "rad": 1.0,
+    "deg": math.pi / 180.0,
+    "rad/s": 1.0,
+    "deg/s": math.pi / 180.0,
+    "rpm": 2.0 * math.pi / 60.0,
+    "m/s": 1.0,
+    "km/h": 1.0 / 3.6,
+    "mph": 0.44704,
+    "uT": 1.0,
+    "T": 1.0e6,
+    "Nm": 1.0,
+}
+
+#: E2E schemes the codec implements. Their ids are what the kernels switch on.
+E2E_SCHEMES: dict[str, int] = {
+    "none": 0,
+    "slipd_crc8": 1,  # CRC-8/SAE-J1850 over bytes 1..n-1 + frame-id low byte; 4-bit counter
+    "toyota_checksum": 2,  # (dlc + id bytes + sum(data[:-1])) & 0xFF in the last byte
+    "autosar_crc8": 3,  # AUTOSAR CRC8H2F over bytes 1..n-1 + data_ids[counter] (VW MQB)
+}
+
+#: [vehicle] keys -> Veh index. Tyre keys live in [vehicle.tyre].
+VEHICLE_KEYS: dict[str, Veh] = {
+    "mass": Veh.MASS,
+    "yaw_inertia": Veh.YAW_INERTIA,
+    "roll_inertia": Veh.ROLL_INERTIA,
+    "cog_to_front_axle": Veh.LF,
+    "cog_to_rear_axle": Veh.LR,
+    "track_front": Veh.TRACK_F,
+    "track_rear": Veh.TRACK_R,
+    "cog_height": Veh.H_COG,
+    "roll_axis_height": Veh.H_ROLL_AXIS,
+    "wheel_radius": Veh.WHEEL_RADIUS,
+    "steering_ratio": Veh.STEER_RATIO,
+    "roll_stiffness": Veh.ROLL_STIFFNESS,
+    "roll_damping": Veh.ROLL_DAMPING,
+    "wheel_inertia": Veh.WHEEL_INERTIA,
+}
+TYRE_KEYS: dict[str, Veh] = {
+    "cornering_stiffness_front": Veh.CORNERING_STIFFNESS_F,
+    "cornering_stiffness_rear": Veh.CORNERING_STIFFNESS_R,
+    "longitudinal_stiffness": Veh.LONGITUDINAL_STIFFNESS,
+    "peak_friction": Veh.MU_NOMINAL,
+    "pacejka_b": Veh.TYRE_B,
+    "pacejka_c": Veh.TYRE_C,
+    "pacejka_e": Veh.TYRE_E,
+}
+#: Parameters that must be strictly positive.
+POSITIVE = set(VEHICLE_KEYS) | set(TYRE_KEYS) - {"pacejka_e"}
+
+
+@dataclass(frozen=True)
+class SignalMap:
+    """One DBC signal feeding one channel: si = physical * factor (summed when several)."""
+
+    name: str
+    factor: float
+    minimum: float | None = None  # physical (DBC units); None = the DBC's own range
+    maximum: float | None = None
+    check_range: bool = True
+
+
+@dataclass(frozen=True)
+class ChannelMap:
+    channel: In
+    message: str
+    signals: tuple[SignalMap, ...]
+    timeout: float  # s; older values are invalid at a tick
+    required: bool
+
+
+@dataclass(frozen=True)
+class MessageMap:
+    name: str
+    e2e: str
+    rate_hz: float
+    timeout: float
+    channels: tuple[In, ...]
+    crc_signal: str | None = None
+    counter_signal: str | None = None
+    data_ids: tuple[int, ...] = ()
+    max_counter_delta: int = 1
+    frame_id: int = -1  # filled from the DBC by the codec
+
+
+@dataclass(frozen=True)
+class Profile:
+    path: Path
+    name: str
+    dbc_path: Path
+    vehicle: np.ndarray
+    channels: dict[In, ChannelMap]
+    messages: dict[str, MessageMap]
+    description: str = ""
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def input_messages(self) -> list[MessageMap]:
+        return list(self.messages.values())
+
+    @property
+    def required_channels(self) -> tuple[In, ...]:
+        return tuple(c for c, m in self.channels.items() if m.required)
+
+
+def resolve_profile_path(name_or_path: str | Path) -> Path:
+    """A shipped profile by name (``default``) or a path to a TOML file."""
+    candidate = Path(name_or_path)
+    if candidate.suffix == ".toml" or candidate.exists():
+        if not candidate.exists():
+            raise ConfigError(f"profile file {candidate} does not exist")
+        return candidate.resolve()
+    shipped = PROFILE_DIR / f"{name_or_path}.toml"
+    if shipped.exists():
+        return shipped
+    names = sorted(p.stem for p in PROFILE_DIR.glob("*.toml"))
+    raise ConfigError(
+        f"unknown profile {name_or_path!r}: not a file, and shipped profiles are {names}"
+    )
+
+
+class _Reader:
+    """Typed access to one TOML table with errors naming file and key."""
+
+    def __init__(self, path: Path, table: dict, prefix: str):
+        self.path, self.table, self.prefix = path, table, prefix
+        self.used: set[str] = set()
+
+    def where(self, key: str) -> str:
+        return f"{self.path}: [{self.prefix}] {key}" if self.prefix else f"{self.path}: {key}"
+
+    def get(self, key, kind, default=..., what: str = ""):
+        self.used.add(key)
+        if key not in self.table:
+            if default is ...:
+                raise ConfigError(f"{self.where(key)} is missing; expected {what or kind.__name__}")
+            return default
+        value = self.table[key]
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+            raise ConfigError(
+                f"{self.where(key)} = {value!r}; expected {what or kind.__name__}"
+            )
+        return value
+
+    def number(self, key, default=..., positive=False) -> float:
+        value = self.get(key, float, default, "a number")
+        if value is not None and value is not ... and not math.isfinite(value):
+            raise ConfigError(f"{self.where(key)} = {value!r}; expected a finite number")
+        if positive and value is not None and value <= 0.0:
+            raise ConfigError(f"{self.where(key)} = {value!r}; expected a number > 0")
+        return value
+
+    def no_unknown(self, allowed=None) -> None:
+        allowed = self.used if allowed is None else set(allowed) | self.used
+        unknown = sorted(set(self.table) - allowed)
+        if unknown:
+            raise ConfigError(
+                f"{self.path}: [{self.prefix}] has unknown key(s) {unknown}; "
+                f"expected only {sorted(allowed)}"
+            )
+
+
+def _load_vehicle(path: Path, doc: dict) -> np.ndarray:
+    table = doc.get("vehicle")
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: [vehicle] table is missing; expected the vehicle parameters")
+    vehicle = np.full(N_VEH, np.nan, dtype=np.float64)
+    reader = _Reader(path, table, "vehicle")
+    for key, index in VEHICLE_KEYS.items():
+        vehicle[index] = reader.number(key, positive=key in POSITIVE)
+    imu = reader.get("imu_position", list, what="[x, y, z] in m relative to the CoG")
+    if len(imu) != 3 or not all(isinstance(v, int | float) for v in imu):
+        raise ConfigError(f"{reader.where('imu_position')} = {imu!r}; expected [x, y, z] in m")
+    vehicle[Veh.IMU_X], vehicle[Veh.IMU_Y], vehicle[Veh.IMU_Z] = (float(v) for v in imu)
+    tyre = reader.get("tyre", dict, what="a [vehicle.tyre] table")
+    tyre_reader = _Reader(path, tyre, "vehicle.tyre")
+    for key, index in TYRE_KEYS.items():
+        vehicle[index] = tyre_reader.number(key, positive=key in POSITIVE)
+    tyre_reader.no_unknown()
+    reader.no_unknown()
+    return vehicle
+
+
+def _parse_channel(path: Path, name: str, spec: dict, vehicle: np.ndarray, messages: dict):
+    try:
+        channel = In[name.upper()]
+    except KeyError:
+        raise ConfigError(
+            f"{path}: [channels] {name} is not a slipd channel; expected one of "
+            f"{[c.name.lower() for c in In]}"
+        ) from None
+    if not isinstance(spec, dict):
+        raise ConfigError(f"{path}: [channels] {name} = {spec!r}; expected an inline table")
+    reader = _Reader(path, spec, f"channels.{name}")
+    message = reader.get("message", str, what="a message name of the DBC")
+    if message not in messages:
+        raise ConfigError(
+            f"{reader.where('message')} = {message!r} has no [messages.{message}] table "
+            "(every mapped message needs its E2E scheme)"
+        )
+    signal_spec = reader.get("signal", (str, list), what="a signal name or a list to sum")
+    signal_names = [signal_spec] if isinstance(signal_spec, str) else list(signal_spec)
+    if not signal_names or not all(isinstance(s, str) for s in signal_names):
+        raise ConfigError(f"{reader.where('signal')} = {signal_spec!r}; expected signal names")
+    unit = reader.get("unit", str, "", what=f"one of {sorted(UNITS)}")
+    if unit not in UNITS:
+        raise ConfigError(f"{reader.where('unit')} = {unit!r}; expected one of {sorted(UNITS)}")
+    sign = reader.number("sign", 1.0)
+    if sign not in (1.0, -1.0):
+        raise ConfigError(f"{reader.where('sign')} = {sign!r}; expected 1 or -1")
+    factor = UNITS[unit] * sign
+    divide_by = reader.get("divide_by", str, "", what="a [vehicle] key, e.g. steering_ratio")
+    multiply_by = reader.get("multiply_by", str, "", what="a [vehicle] key, e.g. wheel_radius")
+    for op, key in (("divide_by", divide_by), ("multiply_by", multiply_by)):
+        if key and key not in VEHICLE_KEYS:
+            raise ConfigError(
+                f"{reader.where(op)} = {key!r}; expected a [vehicle] key: {sorted(VEHICLE_KEYS)}"
+            )
+    if divide_by:
+        factor /= vehicle[VEHICLE_KEYS[divide_by]]
+    if multiply_by:
+        factor *= vehicle[VEHICLE_KEYS[multiply_by]]
+    minimum = reader.number("min", None)
+    maximum = reader.number("max", None)
+    if minimum is not None and maximum is not None and minimum >= maximum:
+        raise ConfigError(f"{reader.where('min')} = {minimum} is not below max = {maximum}")
+    check_range = reader.get("check_range", bool, True)
+    timeout = reader.number("timeout", messages[message].timeout, positive=True)
+    required = reader.get("required", bool, channel in CORE_CHANNELS)
+    reader.no_unknown()
+    signals = tuple(
+        SignalMap(s, factor, minimum, maximum, check_range) for s in signal_names
+    )
+    return ChannelMap(channel, message, signals, timeout, required)
+
+
+def _parse_message(path: Path, name: str, spec: dict) -> MessageMap:
+    if not isinstance(spec, dict):
+        raise ConfigError(f"{path}: [messages] {name} = {spec!r}; expected a table")
+    reader = _Reader(path, spec, f"messages.{name}")
+    e2e = reader.get("e2e", str, what=f"one of {sorted(E2E_SCHEMES)}")
+    if e2e not in E2E_SCHEMES:
+        raise ConfigError(
+            f"{reader.where('e2e')} = {e2e!r} is not an end-to-end scheme slipd implements; "
+            f"expected one of {sorted(E2E_SCHEMES)}"
+        )
+    rate_hz = reader.number("rate_hz", positive=True)
+    timeout = reader.number("timeout", 5.0 / rate_hz, positive=True)
+    crc_signal = reader.get("crc_signal", str, None)
+    counter_signal = reader.get("counter_signal", str, None)
+    data_ids = reader.get("data_ids", list, [], what="16 data-ID bytes, one per counter value")
+    max_delta = reader.get("max_counter_delta", int, 1)
+    if e2e in ("slipd_crc8", "autosar_crc8") and (crc_signal is None or counter_signal is None):
+        raise ConfigError(
+            f"{path}: [messages.{name}] e2e = {e2e!r} needs crc_signal and counter_signal"
+        )
+    if e2e == "toyota_checksum" and crc_signal is None:
+        raise ConfigError(f"{path}: [messages.{name}] e2e = 'toyota_checksum' needs crc_signal")
+    if e2e == "autosar_crc8":
+        if len(data_ids) != 16 or not all(isinstance(d, int) and 0 <= d <= 255 for d in data_ids):
+            raise ConfigError(
+                f"{reader.where('data_ids')} = {data_ids!r}; expected 16 integers 0..255"
+            )
+    elif data_ids:
+        raise ConfigError(f"{reader.where('data_ids')} only applies to e2e = 'autosar_crc8'")
+    if not 1 <= max_delta <= 14:
+        raise ConfigError(f"{reader.where('max_counter_delta')} = {max_delta}; expected 1..14")
+    reader.no_unknown()
+    return MessageMap(
+        name, e2e, rate_hz, timeout, (), crc_signal, counter_signal, tuple(data_ids), max_delta
+    )
+
+
+def load_profile(name_or_path: str | Path = "default") -> Profile:
+    """Load and validate a vehicle profile (a shipped name or a TOML path)."""
+    path = resolve_profile_path(name_or_path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    top = _Reader(path, doc, "")
+    head = _Reader(path, top.get("profile", dict, what="a [profile] table"), "profile")
+    name = head.get("name", str)
+    description = head.get("description", str, "")
+    dbc_name = head.get("dbc", str, what="the DBC file, relative to the profile")
+    head.no_unknown()
+    dbc_path = (path.parent / dbc_name).resolve()
+    if not dbc_path.exists():
+        raise ConfigError(f"{path}: [profile] dbc = {dbc_name!r}: {dbc_path} does not exist")
+    vehicle = _load_vehicle(path, doc)
+    top.used.add("vehicle")
+    message_table = top.get("messages", dict, what="a [messages.NAME] table per input message")
+    messages = {n: _parse_message(path, n, s) for n, s in message_table.items()}
+    channel_table = top.get("channels", dict, what="a [channels] table")
+    channels: dict[In, ChannelMap] = {}
+    for cname, spec in channel_table.items():
+        cmap = _parse_channel(path, cname, spec, vehicle, messages)
+        channels[cmap.channel] = cmap
+    missing = [c.name.lower() for c in CORE_CHANNELS if c not in channels]
+    if missing:
+        raise ConfigError(
+            f"{path}: [channels] lacks {missing}; every estimator needs IMU ax/ay, yaw rate, "
+            "steer and the four wheel speeds"
+        )
+    for mname, mmap in list(messages.items()):
+        used = tuple(c for c, m in channels.items() if m.message == mname)
+        if not used:
+            raise ConfigError(f"{path}: [messages.{mname}] feeds no channel; remove it or map one")
+        messages[mname] = MessageMap(**{**mmap.__dict__, "channels": used})
+    top.no_unknown()
+    return Profile(path, name, dbc_path, vehicle, channels, messages, description)
