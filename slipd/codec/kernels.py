@@ -293,29 +293,27 @@ def sample_latch(latch, channel_timeouts, t, u):
 
 @nb.njit(cache=True)
 def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, frame_time, frame_id,
-                frame_flags, frame_dlc, frame_data, tick_time, latch, msg_state, errors, U):
+                frame_flags, frame_dlc, frame_data, tick_time, tick_until, latch, msg_state,
+                errors, U):
     """The batch engine's front half: decode frames in log order and sample at every tick.
 
-    Frames with ``frame_time <= tick_time[k]`` are applied before tick ``k`` is sampled (the
-    daemon's order: frames received before the tick are latched, then the tick samples).
-    ``frame_flags`` bit 0 = extended ID, bit 1 = remote, bit 2 = error frame (the last two are
-    never decoded). Returns the number of frames consumed.
+    Frames ``[.., tick_until[k])`` are applied before tick ``k`` is sampled at ``tick_time[k]``
+    (the daemon's order: what was received before the tick is latched, then the tick
+    samples; from a log's times that is ``searchsorted(frame_time, tick_time, 'right')``, from
+    a flight recorder it is the file order). ``frame_flags`` bit 0 = extended ID, bit 1 =
+    remote, bit 2 = error frame (the last two are never decoded). Returns frames consumed.
     """
     scratch = np.zeros(latch.shape[1])
-    n_frames = frame_time.shape[0]
     i = 0
     for k in range(tick_time.shape[0]):
-        t_tick = tick_time[k]
-        while i < n_frames and frame_time[i] <= t_tick:
+        while i < tick_until[k]:
             flags = frame_flags[i]
-            if flags & 6:
-                i += 1
-                continue
-            decode_frame(plan_i, plan_f, lookup, frame_id[i], (flags & 1) != 0, frame_dlc[i],
-                         frame_data[i], frame_time[i], timeouts, latch, msg_state, errors,
-                         scratch)
+            if not (flags & 6):
+                decode_frame(plan_i, plan_f, lookup, frame_id[i], (flags & 1) != 0,
+                             frame_dlc[i], frame_data[i], frame_time[i], timeouts, latch,
+                             msg_state, errors, scratch)
             i += 1
-        sample_latch(latch, channel_timeouts, t_tick, U[k])
+        sample_latch(latch, channel_timeouts, tick_time[k], U[k])
     return i
 
 

@@ -21,7 +21,7 @@ from slipd.errors import LogFormatError
 from slipd.estimators import base
 from slipd.estimators.supervision import required_mask, supervise_ticks
 from slipd.profile import Profile, load_profile
-from slipd.replay.candump import Frames
+from slipd.replay.candump import FLAG_TX, Frames
 from slipd.replay.readers import read_frames
 
 TICK_DT = 0.01
@@ -53,23 +53,54 @@ def tick_grid(frames: Frames, dt: float = TICK_DT) -> np.ndarray:
     return start + dt * np.arange(count)
 
 
+def recorded_ticks(frames: Frames) -> tuple[Frames, np.ndarray, np.ndarray] | None:
+    """Ticks of a slipd flight-recorder log: its sent SLIPD_STATE frames (marked T).
+
+    Returns (input frames, tick times, frames latched before each tick), or None when the
+    log holds no slipd output. In the recorder, file order is processing order, so a tick
+    latches exactly the input lines above its SLIPD_STATE line.
+    """
+    state_id = Codec.output_plan().frame_id("SLIPD_STATE")
+    outputs = set(Codec.output_plan().frame_id(n) for n in ("SLIPD_STATE", "SLIPD_AUX",
+                                                            "SLIPD_DIAG"))
+    sent = (frames.flags & FLAG_TX) != 0
+    is_output = sent & np.isin(frames.frame_id, list(outputs))
+    ticks = sent & (frames.frame_id == state_id)
+    if not ticks.any():
+        return None
+    inputs_before = np.cumsum(~is_output) - (~is_output)  # inputs strictly above each line
+    tick_until = inputs_before[ticks].astype(np.int64)
+    return frames.select(~is_output), frames.t[ticks].copy(), tick_until
+
+
 def latch_log(frames: Frames, profile: Profile, tick_time: np.ndarray | None = None,
-              dt: float = TICK_DT) -> Inputs:
+              dt: float = TICK_DT, tick_until: np.ndarray | None = None) -> Inputs:
     """Decode ``frames`` and sample the latch at every tick (``tick_time`` or the grid)."""
-    if len(frames) and np.any(np.diff(frames.t) < 0):
+    if tick_until is None and len(frames) and np.any(np.diff(frames.t) < 0):
         bad = int(np.flatnonzero(np.diff(frames.t) < 0)[0]) + 1
         raise LogFormatError(f"{frames.source}: frame {bad + 1} goes back in time "
                              f"({frames.t[bad]:.6f} < {frames.t[bad - 1]:.6f}); sort the log")
     codec = Codec(profile)
     ticks = tick_grid(frames, dt) if tick_time is None else np.asarray(tick_time, np.float64)
     U = np.zeros((len(ticks), U_LEN))
+    if tick_until is None:
+        tick_until = np.searchsorted(frames.t, ticks, side="right").astype(np.int64)
     p, s = codec.inputs, codec.state
     data = frames.data if frames.data.shape[1] >= 8 else np.pad(
         frames.data, ((0, 0), (0, 8 - frames.data.shape[1])))
     kernels.latch_ticks(p.plan_i, p.plan_f, p.lookup, p.timeouts, codec.channel_timeouts,
                         frames.t, frames.frame_id, frames.flags, frames.dlc.astype(np.int64),
-                        data, ticks, s.latch, s.msg_state, s.errors, U)
+                        data, ticks, tick_until, s.latch, s.msg_state, s.errors, U)
     return Inputs(ticks, U, codec.error_counts(), len(frames))
+
+
+def latch_log_or_recording(frames: Frames, profile: Profile) -> Inputs:
+    """Latch on the recorded ticks of a flight-recorder log, else on the 100 Hz grid."""
+    recorded = recorded_ticks(frames)
+    if recorded is None:
+        return latch_log(frames, profile)
+    inputs, tick_time, tick_until = recorded
+    return latch_log(inputs, profile, tick_time, tick_until=tick_until)
 
 
 def run_method(inputs: Inputs, profile: Profile, name: str,
@@ -88,7 +119,7 @@ def run_log(log_path: str | Path, profile: Profile | str, method_names: list[str
     """Read, decode and estimate a whole log with each method in ``method_names``."""
     profile = load_profile(profile) if isinstance(profile, str) else profile
     frames = read_frames(log_path, skip_bad=skip_bad)
-    inputs = latch_log(frames, profile)
+    inputs = latch_log_or_recording(frames, profile)
     return {name: run_method(inputs, profile, name) for name in method_names}
 
 

@@ -1,0 +1,96 @@
+"""``slipd run``: the real-time daemon (or ``--demo`` on a virtual bus with a simulated drive)."""
+
+from __future__ import annotations
+
+import argparse
+import tomllib
+from pathlib import Path
+
+SYSTEM_CONFIG = Path("/etc/slipd/slipd.toml")
+#: config-file keys (same names as the options, with underscores)
+CONFIG_KEYS = {"profile", "interface", "channel", "estimator", "recorder", "stats_socket",
+               "prometheus", "state_file", "sched_fifo", "cpu", "mlockall", "timer_slack_ns",
+               "gc_freeze"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, default=None,
+                        help=f"TOML config file (default {SYSTEM_CONFIG} when it exists); "
+                             "command-line options override it")
+    parser.add_argument("--profile", help="vehicle profile name or TOML path (default: default)")
+    parser.add_argument("--interface", help="python-can interface (default socketcan)")
+    parser.add_argument("--channel", help="bus channel (default can0)")
+    parser.add_argument("--estimator", help="method (default kinematic_heuristic)")
+    parser.add_argument("--duration", type=float, help="stop after S seconds")
+    parser.add_argument("--recorder", type=Path, help="flight-recorder candump log")
+    parser.add_argument("--stats-socket", help="unix socket for `slipd stats`")
+    parser.add_argument("--prometheus", metavar="HOST:PORT",
+                        help="serve Prometheus metrics (loopback by default, e.g. 127.0.0.1:9464)")
+    parser.add_argument("--state-file", type=Path, help="persisted offsets/mu (JSON)")
+    rt = parser.add_argument_group("real-time settings (each reported; refused = error)")
+    rt.add_argument("--sched-fifo", type=int, metavar="PRIO", help="SCHED_FIFO priority")
+    rt.add_argument("--cpu", type=int, help="pin to this CPU")
+    rt.add_argument("--mlockall", action="store_true", default=None, help="lock memory")
+    rt.add_argument("--timer-slack-ns", type=int, help="timer slack (1 = none)")
+    rt.add_argument("--gc-freeze", action="store_true", default=None,
+                    help="freeze and disable the garbage collector")
+    demo = parser.add_argument_group("demo")
+    demo.add_argument("--demo", action="store_true",
+                      help="run on a python-can virtual bus fed by a simulated drive")
+    demo.add_argument("--scenario", default="double_lane_change",
+                      help="demo scenario (default double_lane_change)")
+
+
+def _settings(args: argparse.Namespace) -> dict:
+    from slipd.errors import ConfigError
+
+    settings = {"profile": "default", "interface": "socketcan", "channel": "can0",
+                "estimator": "kinematic_heuristic", "sched_fifo": 0, "mlockall": False,
+                "gc_freeze": False}
+    path = args.config or (SYSTEM_CONFIG if SYSTEM_CONFIG.exists() else None)
+    if path is not None:
+        try:
+            document = tomllib.loads(Path(path).read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise ConfigError(f"{path}: cannot read config: {exc}") from exc
+        unknown = set(document) - CONFIG_KEYS
+        if unknown:
+            raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)}; expected "
+                              f"{sorted(CONFIG_KEYS)}")
+        settings.update(document)
+    for key in CONFIG_KEYS:
+        value = getattr(args, key, None)
+        if value is not None:
+            settings[key] = value
+    return settings
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.demo:
+        from slipd.daemon.demo import run_demo
+
+        return run_demo(args)
+    from slipd.daemon.loop import Daemon, DaemonConfig
+    from slipd.daemon.service import RealtimeOptions
+    from slipd.profile import load_profile
+
+    s = _settings(args)
+    config = DaemonConfig(
+        profile=load_profile(s["profile"]), estimator=s["estimator"],
+        interface=s["interface"], channel=s["channel"],
+        recorder=Path(s["recorder"]) if s.get("recorder") else None,
+        stats_socket=s.get("stats_socket"), prometheus=s.get("prometheus"),
+        state_file=Path(s["state_file"]) if s.get("state_file") else None,
+        realtime=RealtimeOptions(sched_fifo=int(s["sched_fifo"]), cpu=s.get("cpu"),
+                                 mlockall=bool(s["mlockall"]),
+                                 timer_slack_ns=s.get("timer_slack_ns"),
+                                 gc_freeze=bool(s["gc_freeze"])),
+        duration=args.duration,
+    )
+    daemon = Daemon(config)
+    snapshot = daemon.run()
+    c = snapshot["counters"]
+    lat = snapshot["cycle_latency_us"]
+    print(f"slipd: stopped after {c['ticks']} ticks: {c['deadline_misses']} deadline misses, "
+          f"cycle latency us p50 {lat['p50']} p99 {lat['p99']} max {lat['max']}")
+    return 0

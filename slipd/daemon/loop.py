@@ -1,0 +1,355 @@
+"""The real-time loop: absolute 10 ms ticks on CLOCK_MONOTONIC, one thread.
+
+Between ticks the loop receives frames and decodes each into the latch
+(:meth:`slipd.codec.Codec.decode`); at each tick it samples the latch, steps the estimator,
+supervises the inputs, encodes SLIPD_STATE and SLIPD_AUX and sends them. Everything else
+(1 Hz diagnostics frame, stats requests, systemd notifications, persistence, the live view)
+runs in the slack after a tick's frames are on the bus. No other thread does work, because a
+busy Python thread delays every cycle by ~5 ms here (shared/notes/realtime-python.md).
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slipd.channels import N_OUT, ST_INPUT_TIMEOUT, ST_VALID, In, Out, new_u
+from slipd.codec import N_TX, Codec, Tx
+from slipd.codec.kernels import LATCH_SET, LATCH_TIME
+from slipd.daemon.recorder import FlightRecorder
+from slipd.daemon.service import RealtimeOptions, StateStore, SystemdNotifier, apply_realtime
+from slipd.daemon.stats import Stats, StatsServer
+from slipd.estimators import base
+from slipd.estimators.supervision import required_mask, supervise
+from slipd.profile import Profile
+
+TICK_DT = 0.01
+REOPEN_INTERVAL = 1.0  # s between attempts to reopen a vanished interface
+PERSIST_INTERVAL = 60.0  # s
+
+
+@dataclass
+class DaemonConfig:
+    profile: Profile
+    estimator: str = "kinematic_heuristic"
+    interface: str = "socketcan"
+    channel: str = "can0"
+    recorder: Path | None = None
+    recorder_max_bytes: int = 256 * 1024 * 1024
+    stats_socket: str | None = None
+    prometheus: str | None = None
+    state_file: Path | None = None
+    realtime: RealtimeOptions = field(default_factory=RealtimeOptions)
+    duration: float | None = None  # s; None = until SIGTERM/SIGINT
+
+
+def open_bus(config: DaemonConfig, plan_ids: list[tuple[int, bool]]):
+    """A python-can bus with kernel RX filters for the profile's input IDs."""
+    import can
+
+    filters = [{"can_id": frame_id, "can_mask": 0x1FFFFFFF if ext else 0x7FF, "extended": ext}
+               for frame_id, ext in plan_ids]
+    kwargs = {"interface": config.interface, "channel": config.channel, "can_filters": filters}
+    if config.interface == "socketcan":
+        kwargs["ignore_rx_error_frames"] = True
+    return can.Bus(**kwargs)
+
+
+class Daemon:
+    """One estimator on one bus. ``run()`` blocks until stopped."""
+
+    def __init__(self, config: DaemonConfig, bus=None,
+                 on_second: Callable[[Daemon], None] | None = None, log=print):
+        import can
+
+        self.can = can
+        self.config = config
+        self.log = log
+        self.codec = Codec(config.profile)
+        self.method = base.load(config.estimator)
+        self.estimator_id = base.available().index(config.estimator)
+        self.vehicle = config.profile.vehicle
+        self.required = required_mask(base.required_channels(self.method, config.profile))
+        self.state = self.method.init(self.vehicle)
+        self.persistent = tuple(getattr(self.method.module, "PERSISTENT_STATE", ()))
+        self.store = StateStore(config.state_file)
+        self.u = new_u()
+        self.out = np.zeros(N_OUT)
+        self.tx = np.zeros(N_TX)
+        self.stats = Stats()
+        self.notifier = SystemdNotifier()
+        self.on_second = on_second
+        self.running = False
+        self.last_status = 0
+        self._frames = {name: bytearray(8) for name in ("SLIPD_STATE", "SLIPD_AUX",
+                                                         "SLIPD_DIAG")}
+        self._buffers = {name: np.zeros(8, dtype=np.uint8) for name in self._frames}
+        plan = self.codec.inputs
+        self.plan_ids = [(plan.frame_id(n), plan.is_extended(n)) for n in plan.message_names]
+        self.bus = bus if bus is not None else open_bus(config, self.plan_ids)
+        self._owns_bus = bus is None
+        outputs = self.codec.outputs
+        self._messages = {name: can.Message(arbitration_id=outputs.frame_id(name),
+                                            is_extended_id=False, data=bytes(8))
+                          for name in self._frames}
+        self.recorder = (FlightRecorder(config.recorder, config.recorder_max_bytes,
+                                        config.channel) if config.recorder else None)
+        self.server = StatsServer(config.stats_socket, config.prometheus)
+        self.bus_down_since: float | None = None
+        self.bus_events: list[str] = []
+        self.started_at = 0.0
+        self.first_frame_at: float | None = None
+        self.ready = threading.Event()  # set with READY=1 (tests and the demo wait on it)
+
+    # ---- start-up -------------------------------------------------------------------------
+    def warm_up(self) -> float:
+        """Run every kernel once on dummy data so numba has compiled/loaded them (before
+        READY=1); returns the seconds it took."""
+        started = time.perf_counter()
+        scratch_state = self.method.init(self.vehicle)
+        u = new_u()
+        out = np.zeros(N_OUT)
+        self.method.step(scratch_state, u, self.method.params, self.vehicle, TICK_DT, out)
+        supervise(u, self.required, out)
+        buffer = np.zeros(8, dtype=np.uint8)
+        from slipd.codec import kernels
+
+        plan = self.codec.outputs
+        for name in self._frames:
+            kernels.encode_frame(plan.plan_i, plan.plan_f, plan.message_rows[name], self.tx, 0,
+                                 buffer)
+        scratch_codec = Codec(self.config.profile)
+        scratch_codec.decode(0x7FF, bytes(8), 0.0)
+        scratch_codec.sample(0.0, u)
+        return time.perf_counter() - started
+
+    def restore_state(self) -> str:
+        values, message = self.store.load(self.config.estimator, len(self.state))
+        for index, value in values.items():
+            if index in self.persistent:
+                self.state[index] = value
+        return message
+
+    def save_state(self) -> None:
+        try:
+            self.store.save(self.config.estimator, self.state, self.persistent)
+        except OSError as exc:
+            self.log(f"slipd: cannot save state to {self.store.path}: {exc}")
+
+    # ---- the loop -------------------------------------------------------------------------
+    def _on_frame(self, message) -> None:
+        if message.is_error_frame or message.is_remote_frame:
+            return
+        stats = self.stats
+        stats.counters["rx_frames"] += 1
+        frame_id = message.arbitration_id
+        stats.rx_per_id[frame_id] = stats.rx_per_id.get(frame_id, 0) + 1
+        # Microsecond times, as the recorder writes them, so a replay sees the same values.
+        timestamp = round(message.timestamp * 1e6) / 1e6
+        self.codec.decode(frame_id, message.data, timestamp, message.is_extended_id)
+        if self.recorder is not None:
+            self.recorder.frame(timestamp, frame_id, message.is_extended_id, message.data,
+                                rx=True)
+
+    def _receive_until(self, deadline: float) -> None:
+        recv = self.bus.recv
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0.0:
+                return
+            if self.bus_down_since is not None:
+                self._try_reopen(deadline)
+                return
+            try:
+                message = recv(timeout=remaining)
+            except (self.can.CanOperationError, OSError) as exc:
+                self._bus_failed(exc)
+                continue
+            if message is not None:
+                self._on_frame(message)
+
+    def _bus_failed(self, exc: Exception) -> None:
+        if self.bus_down_since is None:
+            self.bus_down_since = time.monotonic()
+            event = f"bus {self.config.channel} failed: {exc}; outputs invalid until it is back"
+            self.bus_events.append(event)
+            self.log(f"slipd: {event}")
+            self.notifier.notify(f"STATUS={event}")
+
+    def _try_reopen(self, deadline: float) -> None:
+        """After a bus failure: retry once a second; meanwhile sleep to the tick."""
+        now = time.monotonic()
+        if now - self.bus_down_since >= REOPEN_INTERVAL and self._owns_bus:
+            try:
+                self.bus.shutdown()
+            except Exception:  # noqa: BLE001 - the old socket may already be gone
+                pass
+            try:
+                self.bus = open_bus(self.config, self.plan_ids)
+                event = f"bus {self.config.channel} reopened"
+                self.bus_events.append(event)
+                self.log(f"slipd: {event}")
+                self.bus_down_since = None
+                return
+            except (self.can.CanError, OSError, ValueError):
+                self.bus_down_since = now - REOPEN_INTERVAL + REOPEN_INTERVAL  # retry in 1 s
+        remaining = deadline - time.monotonic()
+        if remaining > 0:
+            time.sleep(remaining)
+
+    def _send(self, name: str, t_record: float) -> None:
+        plan = self.codec.outputs
+        buffer = self._buffers[name]
+        self.codec.encode_output(name, self.tx, buffer)
+        message = self._messages[name]
+        message.data[:] = buffer.tobytes()
+        message.timestamp = t_record
+        if self.bus_down_since is None:
+            try:
+                self.bus.send(message)
+            except (self.can.CanOperationError, OSError) as exc:
+                self.stats.counters["tx_errors"] += 1
+                if getattr(exc, "errno", None) not in (105,):  # ENOBUFS: queue full, go on
+                    self._bus_failed(exc)
+        else:
+            self.stats.counters["tx_errors"] += 1
+        if self.recorder is not None:
+            self.recorder.frame(t_record, plan.frame_id(name), False, message.data, rx=False)
+
+    def tick(self, t_wall: float) -> None:
+        """One cycle's work after the wake-up: latch -> step -> supervise -> encode -> send."""
+        codec, u, out, tx = self.codec, self.u, self.out, self.tx
+        codec.sample(t_wall, u)
+        self.method.step(self.state, u, self.method.params, self.vehicle, TICK_DT, out)
+        supervise(u, self.required, out)
+        if self.bus_down_since is not None:
+            out[Out.STATUS] = float((int(out[Out.STATUS]) & ~ST_VALID) | ST_INPUT_TIMEOUT)
+        tx[: Out.STATUS + 1] = out[: Out.STATUS + 1]
+        for slot in (Tx.BETA, Tx.BETA_RATE, Tx.VX, Tx.VY, Tx.SIGMA_BETA, Tx.ROLL, Tx.MU):
+            if not math.isfinite(tx[slot]):
+                tx[slot] = 0.0  # never valid then (supervise); the bits must be defined
+        tx[Tx.MU_VALID] = 1.0 if math.isfinite(out[Out.MU]) else 0.0
+        tx[Tx.ESTIMATOR_ID] = self.estimator_id
+        self._send("SLIPD_STATE", t_wall)
+        self._send("SLIPD_AUX", t_wall)
+        status = int(out[Out.STATUS])
+        if status & ST_INPUT_TIMEOUT and not self.last_status & ST_INPUT_TIMEOUT:
+            self.stats.counters["input_timeouts"] += 1
+            self.stats.interval_timeouts += 1
+        if status & ST_VALID:
+            self.stats.counters["valid_ticks"] += 1
+        self.last_status = status
+
+    def _second(self, rx_rejected_before: int) -> int:
+        """1 Hz housekeeping: SLIPD_DIAG, systemd status/watchdog. Returns rejected total."""
+        stats, tx = self.stats, self.tx
+        rejected = self.codec.rejected_total()
+        h = stats.interval
+        tx[Tx.DEADLINE_MISSES] = min(stats.interval_misses, 63)
+        tx[Tx.LATENCY_P50_US] = h.get_value_at_percentile(50)
+        tx[Tx.LATENCY_P99_US] = h.get_value_at_percentile(99)
+        tx[Tx.LATENCY_MAX_US] = h.get_max_value()
+        tx[Tx.INPUT_TIMEOUTS] = min(stats.interval_timeouts, 63)
+        tx[Tx.RX_ERRORS] = min(rejected - rx_rejected_before, 63)
+        self._send("SLIPD_DIAG", time.time())
+        status_line = (f"STATUS=beta {math.degrees(self.out[Out.BETA]):+.2f} deg, "
+                       f"status {self.last_status:#04x}, cycle p99 "
+                       f"{h.get_value_at_percentile(99)} us, misses "
+                       f"{stats.counters['deadline_misses']}")
+        healthy = (stats.interval_misses < 50 and self.bus_down_since is None)
+        self.notifier.notify(status_line + ("\nWATCHDOG=1" if healthy else ""))
+        h.reset()
+        stats.interval_misses = 0
+        stats.interval_timeouts = 0
+        stats.decode_errors = self.codec.error_counts()
+        if self.on_second is not None:
+            self.on_second(self)
+        return rejected
+
+    def snapshot(self) -> dict:
+        extra = {"estimator": self.config.estimator, "status": self.last_status,
+                 "beta_deg": math.degrees(self.out[Out.BETA]), "vx_mps": self.out[Out.VX],
+                 "uptime_s": time.monotonic() - self.started_at, "bus_events": self.bus_events}
+        self.stats.decode_errors = self.codec.error_counts()
+        return self.stats.snapshot(extra)
+
+    def request_stop(self, *_args) -> None:
+        self.running = False
+
+    def run(self) -> dict:
+        """Warm up, notify READY, run ticks until stopped; returns the final snapshot."""
+        config = self.config
+        for line in apply_realtime(config.realtime):
+            self.log(f"slipd: real-time: {line}")
+        self.log(f"slipd: {self.restore_state()}")
+        warm = self.warm_up()
+        self.log(f"slipd: estimator {config.estimator} on {config.interface}:{config.channel}"
+                 f", numba warm-up {warm * 1e3:.0f} ms")
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, self.request_stop)
+            signal.signal(signal.SIGINT, self.request_stop)
+        self.notifier.notify("READY=1\nSTATUS=running")
+        self.running = True
+        self.ready.set()
+        stats = self.stats
+        monotonic = time.monotonic
+        self.started_at = monotonic()
+        wall_offset = time.time() - monotonic()
+        next_tick = self.started_at + TICK_DT
+        end = self.started_at + config.duration if config.duration else math.inf
+        next_second = self.started_at + 1.0
+        next_persist = self.started_at + PERSIST_INTERVAL
+        rejected = 0
+        try:
+            while self.running and next_tick <= end:
+                self._receive_until(next_tick)
+                woke = monotonic()
+                self.tick(round((next_tick + wall_offset) * 1e6) / 1e6)
+                sent = monotonic()
+                if self.first_frame_at is None:
+                    self.first_frame_at = sent
+                stats.counters["ticks"] += 1
+                cycle_us = (sent - next_tick) * 1e6
+                stats.record("cycle_latency_us", cycle_us)
+                stats.interval.record_value(min(max(1, int(cycle_us)), 60_000_000))
+                stats.record("compute_us", (sent - woke) * 1e6)
+                stats.record("wakeup_lateness_us", (woke - next_tick) * 1e6)
+                latch = self.codec.state.latch
+                if latch[LATCH_SET, In.YAW_RATE] > 0.5:
+                    stats.record("input_age_us",
+                                 (next_tick + wall_offset - latch[LATCH_TIME, In.YAW_RATE]) * 1e6)
+                next_tick += TICK_DT
+                if sent > next_tick:
+                    # This tick's frame was not out before the next tick: a miss. Ticks whose
+                    # time has already passed are skipped and counted, never bunched up.
+                    behind = int((sent - next_tick) / TICK_DT)
+                    stats.counters["deadline_misses"] += 1 + behind
+                    stats.interval_misses += 1 + behind
+                    next_tick += behind * TICK_DT
+                # Slack work, after this tick's frames are out.
+                if sent >= next_second:
+                    rejected = self._second(rejected)
+                    next_second += 1.0
+                    if self.recorder is not None:
+                        self.recorder.maybe_rotate()
+                if self.server.unix is not None or self.server.http is not None:
+                    self.server.poll(self.snapshot)
+                if sent >= next_persist:
+                    self.save_state()
+                    next_persist += PERSIST_INTERVAL
+        finally:
+            self.save_state()
+            self.notifier.notify("STOPPING=1")
+            self.server.close()
+            if self.recorder is not None:
+                self.recorder.close()
+            if self._owns_bus:
+                self.bus.shutdown()
+        return self.snapshot()

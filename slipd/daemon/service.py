@@ -1,0 +1,134 @@
+"""What the daemon needs from its host: systemd notification, real-time settings, state files.
+
+No threads: everything here is called from the loop's thread at start, at 1 Hz or at exit.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import gc
+import json
+import math
+import os
+import socket
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slipd.errors import ConfigError
+
+PR_SET_TIMERSLACK = 29
+MCL_CURRENT_FUTURE = 3
+
+
+class SystemdNotifier:
+    """sd_notify(3) over $NOTIFY_SOCKET; silent no-op when not started by systemd."""
+
+    def __init__(self) -> None:
+        address = os.environ.get("NOTIFY_SOCKET")
+        self.socket = None
+        self.address = None
+        if address:
+            if address.startswith("@"):
+                address = "\0" + address[1:]
+            self.address = address
+            self.socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+        usec = os.environ.get("WATCHDOG_USEC")
+        self.watchdog_interval = int(usec) / 2e6 if usec and usec.isdigit() else None
+
+    @property
+    def enabled(self) -> bool:
+        return self.socket is not None
+
+    def notify(self, text: str) -> None:
+        if self.socket is None:
+            return
+        try:
+            self.socket.sendto(text.encode(), self.address)
+        except OSError as exc:
+            print(f"slipd: sd_notify failed: {exc}", file=sys.stderr)
+
+
+@dataclass
+class RealtimeOptions:
+    sched_fifo: int = 0  # priority, 0 = off
+    cpu: int | None = None
+    mlockall: bool = False
+    timer_slack_ns: int | None = None
+    gc_freeze: bool = False
+
+
+def apply_realtime(options: RealtimeOptions) -> list[str]:
+    """Apply each requested setting; returns report lines; a refused one raises ConfigError."""
+    report = []
+    libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    if options.timer_slack_ns is not None:
+        if libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(options.timer_slack_ns), 0, 0, 0) != 0:
+            raise ConfigError(f"timer slack {options.timer_slack_ns} ns refused: "
+                              f"{os.strerror(ctypes.get_errno())}")
+        report.append(f"timer slack {options.timer_slack_ns} ns")
+    if options.cpu is not None:
+        try:
+            os.sched_setaffinity(0, {options.cpu})
+        except OSError as exc:
+            raise ConfigError(f"CPU affinity {{{options.cpu}}} refused: {exc}") from exc
+        report.append(f"pinned to CPU {options.cpu}")
+    if options.mlockall:
+        if libc.mlockall(MCL_CURRENT_FUTURE) != 0:
+            raise ConfigError(f"mlockall refused: {os.strerror(ctypes.get_errno())} "
+                              "(needs CAP_IPC_LOCK or LimitMEMLOCK=infinity)")
+        report.append("memory locked (mlockall)")
+    if options.sched_fifo:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(options.sched_fifo))
+        except OSError as exc:
+            raise ConfigError(f"SCHED_FIFO priority {options.sched_fifo} refused: {exc} "
+                              "(needs CAP_SYS_NICE or an RLIMIT_RTPRIO)") from exc
+        report.append(f"SCHED_FIFO priority {options.sched_fifo}")
+    if options.gc_freeze:
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        report.append("gc frozen and disabled (no collector pauses in the loop)")
+    return report or ["no real-time settings (best effort scheduling)"]
+
+
+class StateStore:
+    """Persisted estimator state (offsets, mu) as JSON, written atomically."""
+
+    def __init__(self, path: Path | None):
+        self.path = path
+
+    def load(self, method: str, size: int) -> tuple[dict[int, float], str]:
+        """Saved {state index: value} for ``method``; a bad file is reported, never fatal."""
+        if self.path is None:
+            return {}, "state persistence off"
+        if not self.path.exists():
+            return {}, f"no saved state at {self.path}"
+        try:
+            document = json.loads(self.path.read_text())
+            if document.get("method") != method:
+                return {}, (f"saved state in {self.path} is for {document.get('method')!r}, "
+                            f"not {method!r}: ignored")
+            values = {int(k): float(v) for k, v in document["state"].items()}
+            if any(not 0 <= k < size or not math.isfinite(v) for k, v in values.items()):
+                raise ValueError("index out of range or non-finite value")
+            return values, f"restored {len(values)} state values from {self.path}"
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            return {}, f"state file {self.path} is corrupt ({exc}): ignored"
+
+    def save(self, method: str, state: np.ndarray, indices: tuple[int, ...]) -> None:
+        if self.path is None or not indices:
+            return
+        document = {"method": method, "state": {str(i): float(state[i]) for i in indices
+                                                if math.isfinite(state[i])}}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=".slipd-state-")
+        with os.fdopen(fd, "w") as handle:
+            json.dump(document, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, self.path)
