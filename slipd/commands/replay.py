@@ -50,7 +50,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     from slipd.profile import load_profile
     from slipd.replay import outputs
     from slipd.replay.candump import write_candump
-    from slipd.replay.engine import latch_log, run_method
+    from slipd.replay.engine import latch_log_or_recording, run_method
     from slipd.replay.readers import read_frames
 
     started = time.perf_counter()
@@ -58,7 +58,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     for name in methods:
         base.load(name)  # unknown names fail before the log is read
     frames = read_frames(log, skip_bad=skip_bad)
-    inputs = latch_log(frames, profile)
+    inputs = latch_log_or_recording(frames, profile)
     estimates = [run_method(inputs, profile, name) for name in methods]
     elapsed = time.perf_counter() - started
     lines = [f"{log}: {len(frames)} frames, {len(inputs.t)} ticks, {elapsed:.2f} s "
