@@ -34,9 +34,12 @@ def _simulated_drive(scenario: str) -> tuple[Path, Path]:
     return log, truth
 
 
-def _truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    table = np.genfromtxt(path, delimiter=",", names=True, comments="#")
-    return table["t"], table["beta"], table["vx"]
+def _truth(path: Path, first_frame_time: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Truth time (s since the first frame), beta and vx."""
+    from slipd.sim.writer import read_truth_csv
+
+    table, log_epoch = read_truth_csv(path)
+    return table["t"] + log_epoch - first_frame_time, table["beta"], table["vx"]
 
 
 def run_demo(args: argparse.Namespace) -> int:
@@ -49,10 +52,10 @@ def run_demo(args: argparse.Namespace) -> int:
 
     log, truth_path = _simulated_drive(args.scenario)
     frames = read_frames(log)
-    truth_t, truth_beta, truth_vx = _truth(truth_path)
     channel = "slipd-demo"
     messages = to_messages(frames, {name: channel for name in frames.channels})
     log_start = messages[0].timestamp
+    truth_t, truth_beta, truth_vx = _truth(truth_path, log_start)
     profile = load_profile(args.profile or "default")
     estimator = args.estimator or "kinematic_heuristic"
     duration = args.duration or (messages[-1].timestamp - log_start + 0.5)
@@ -68,7 +71,7 @@ def run_demo(args: argparse.Namespace) -> int:
     def live_view(daemon: Daemon) -> None:
         out = daemon.out
         t_log = time.monotonic() - clock["start"]
-        true_beta = float(np.interp(t_log, truth_t - truth_t[0], truth_beta))
+        true_beta = float(np.interp(t_log, truth_t, truth_beta))
         h = daemon.stats.histograms["cycle_latency_us"]
         valid = int(out[Out.STATUS]) & ST_VALID
         print(f"t {t_log:6.1f} s  beta {math.degrees(out[Out.BETA]):+6.2f} deg  truth "
@@ -84,9 +87,9 @@ def run_demo(args: argparse.Namespace) -> int:
         original_tick(t_wall)
         if play_started.is_set() and int(daemon.out[Out.STATUS]) & ST_VALID:
             t_log = time.monotonic() - clock["start"]
-            speed = float(np.interp(t_log, truth_t - truth_t[0], truth_vx))
+            speed = float(np.interp(t_log, truth_t, truth_vx))
             if speed > 20 / 3.6:
-                true_beta = float(np.interp(t_log, truth_t - truth_t[0], truth_beta))
+                true_beta = float(np.interp(t_log, truth_t, truth_beta))
                 errors.append(daemon.out[Out.BETA] - true_beta)
 
     daemon.tick = tick_and_score
@@ -109,6 +112,7 @@ def run_demo(args: argparse.Namespace) -> int:
     snapshot = daemon.run()
     player.join()
     player_bus.shutdown()
+    daemon_bus.shutdown()
     c = snapshot["counters"]
     lat = snapshot["cycle_latency_us"]
     rms = math.degrees(math.sqrt(np.mean(np.square(errors)))) if errors else float("nan")
