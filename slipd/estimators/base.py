@@ -36,6 +36,7 @@ from slipd.errors import ConfigError
 #: name -> module path. Plain dict, lazy imports: importing slipd must not compile anything.
 REGISTRY: dict[str, str] = {
     "zero": "slipd.estimators.zero",
+    "kinematic_heuristic": "slipd.estimators.kinematic_heuristic",
 }
 
 
