@@ -37,6 +37,9 @@ from slipd.errors import ConfigError
 REGISTRY: dict[str, str] = {
     "zero": "slipd.estimators.zero",
     "kinematic_heuristic": "slipd.estimators.kinematic_heuristic",
+    "dk_ekf": "slipd.estimators.dk_ekf",
+    "d_ekf": "slipd.estimators.d_ekf",
+    "k_kf": "slipd.estimators.k_kf",
 }
 
 
