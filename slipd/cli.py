@@ -20,8 +20,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("slipd.commands.sim", "simulate scenarios: candump log + ground truth"),
     "eval": ("slipd.commands.eval", "evaluate estimators on logs against ground truth"),
     "stats": ("slipd.commands.stats", "show a running daemon's latency statistics"),
-    "import": ("slipd.commands.import_data", "turn recorded CSV/MAT signals into a candump log"),
-    "bench": ("slipd.commands.bench", "run the performance benchmarks"),
 }
 
 
