@@ -1,0 +1,1 @@
+"""Evaluation of estimates against ground truth: metrics (numpy only) and plots (matplotlib)."""

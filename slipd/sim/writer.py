@@ -1,0 +1,99 @@
+"""Files of a simulation: the candump log a car's bus would carry and the truth CSV."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from slipd.sim.result import SimResult
+from slipd.sim.sensors import TRUTH_UNITS
+
+#: Log time of t = 0: fixed, so the same seed writes byte-identical logs
+#: (2023-11-14 22:13:20 UTC).
+START_EPOCH = 1_700_000_000.0
+
+#: Truth columns written to the CSV (a subset of SimResult.truth, in this order).
+TRUTH_COLUMNS = (
+    "t", "beta", "vx", "vy", "speed", "yaw_rate", "roll", "pitch", "ax", "ay", "mu", "steer",
+    "wheel_speed_fl", "wheel_speed_fr", "wheel_speed_rl", "wheel_speed_rr", "bank", "grade",
+    "yaw", "s", "pos_x", "pos_y",
+)
+
+
+def write_truth_csv(path: str | Path, result: SimResult, epoch: float = START_EPOCH) -> None:
+    """100 Hz truth, SI, ISO 8855. Comment lines (``#``) document the columns; ``t`` counts
+    from the log's first instant, ``log_epoch`` is that instant on the log's time axis."""
+    cols = [c for c in TRUTH_COLUMNS if c in result.truth]
+    header = [
+        f"# slipd sim truth: scenario={result.scenario} vehicle={result.vehicle} "
+        f"seed={result.seed}",
+        f"# log_epoch = {epoch:.6f}  (log time = log_epoch + t)",
+        "# SI units, ISO 8855 axes (x forward, y left, z up), beta = atan2(vy, vx) at the CoG,",
+        "# roll/pitch: body relative to the road (ISO signs), bank: road roll (+ right edge",
+        "# lower), grade: + uphill, mu: peak lateral friction of the road under the car.",
+        "# columns: " + ", ".join(f"{c} [{TRUTH_UNITS[c]}]" for c in cols),
+        ",".join(cols),
+    ]
+    data = np.column_stack([result.truth[c] for c in cols])
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write("\n".join(header) + "\n")
+        np.savetxt(fh, data, fmt="%.9g", delimiter=",")
+
+
+def read_truth_csv(path: str | Path) -> tuple[dict[str, np.ndarray], float]:
+    """The truth columns and the log epoch of a truth CSV written by :func:`write_truth_csv`."""
+    from slipd.errors import LogFormatError
+
+    epoch = 0.0
+    names: list[str] | None = None
+    skip = 0
+    with open(path, encoding="ascii") as fh:
+        for line in fh:
+            skip += 1
+            if line.startswith("#"):
+                if "log_epoch" in line:
+                    epoch = float(line.split("=", 1)[1].split()[0])
+                continue
+            names = line.strip().split(",")
+            break
+    if not names or "t" not in names or "beta" not in names:
+        raise LogFormatError(f"{path}: not a slipd truth CSV (needs a header with t and beta)")
+    try:
+        data = np.loadtxt(path, delimiter=",", skiprows=skip, ndmin=2)
+    except ValueError as exc:
+        raise LogFormatError(f"{path}: {exc}") from exc
+    if data.shape[1] != len(names):
+        raise LogFormatError(f"{path}: {data.shape[1]} values per line, header has {len(names)}")
+    return {name: data[:, i] for i, name in enumerate(names)}, epoch
+
+
+def encode_frames(result: SimResult, profile, epoch: float = START_EPOCH):
+    """Every transmission through the codec, time-sorted: (t, frame_id, data [n, 8], dlc)."""
+    from slipd.codec import Codec
+
+    codec = Codec.from_profile(profile)
+    stamps, ids, payloads, dlcs, order_key = [], [], [], [], []
+    for rank, (name, msg) in enumerate(result.sensors.items()):
+        frame_id, data = codec.encode_channels(name, msg.values)
+        n = len(msg.t)
+        padded = np.zeros((n, 8), dtype=np.uint8)
+        padded[:, : data.shape[1]] = data
+        stamps.append(np.round((epoch + msg.t) * 1e6) / 1e6)
+        ids.append(np.full(n, frame_id, dtype=np.int64))
+        payloads.append(padded)
+        dlcs.append(np.full(n, data.shape[1], dtype=np.uint8))
+        order_key.append(np.full(n, rank))
+    t = np.concatenate(stamps)
+    rank = np.concatenate(order_key)
+    order = np.lexsort((rank, t))  # by time, ties in bus order
+    return (t[order], np.concatenate(ids)[order], np.concatenate(payloads)[order],
+            np.concatenate(dlcs)[order])
+
+
+def write_log(path: str | Path, result: SimResult, profile, epoch: float = START_EPOCH) -> int:
+    """Write the candump -L log; returns the number of frames."""
+    from slipd.replay.candump import write_candump
+
+    t, frame_id, data, dlc = encode_frames(result, profile, epoch)
+    return write_candump(path, t, frame_id, data, dlc, interface="can0")
