@@ -1,0 +1,110 @@
+"""Replay throughput: read + decode + estimate a 1-hour candump log, against the library path.
+
+fast path: slipd.replay (numba candump reader -> codec latch_ticks -> run_ticks).
+library path: python-can LogReader + cantools decode_message + the same estimator's step
+called per tick from Python (measured on the first minutes, reported per frame).
+
+    .venv/bin/python benchmarks/replay.py [--hours 1] [--estimator kinematic_heuristic]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.codec import bus_frames
+from slipd.channels import N_OUT, VALID, In, new_u
+from slipd.codec import Codec
+from slipd.estimators import base
+from slipd.profile import load_profile
+from slipd.replay.candump import read_candump, write_candump
+from slipd.replay.engine import latch_log, run_method
+
+
+def library_path(log: Path, profile, method_name: str, limit_frames: int) -> tuple[int, float]:
+    import can
+    import cantools
+
+    db = cantools.database.load_file(str(profile.dbc_path))
+    method = base.load(method_name)
+    state = method.init(profile.vehicle)
+    out = np.zeros(N_OUT)
+    u = new_u()
+    by_signal = {}
+    for channel, cmap in profile.channels.items():
+        for smap in cmap.signals:
+            by_signal[(cmap.message, smap.name)] = (channel, smap.factor)
+    names = {m.frame_id: m.name for m in db.messages}
+    started = time.perf_counter()
+    next_tick = None
+    count = 0
+    for message in can.LogReader(str(log)):
+        if next_tick is None:
+            next_tick = message.timestamp + 0.01
+        while message.timestamp > next_tick:
+            u[2 * len(In)] = next_tick
+            method.step(state, u, method.params, profile.vehicle, 0.01, out)
+            next_tick += 0.01
+        decoded = db.decode_message(message.arbitration_id, message.data)
+        name = names[message.arbitration_id]
+        for signal, value in decoded.items():
+            target = by_signal.get((name, signal))
+            if target is not None:
+                u[target[0]] = value * target[1]
+                u[VALID + target[0]] = 1.0
+        count += 1
+        if count >= limit_frames:
+            break
+    return count, time.perf_counter() - started
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--hours", type=float, default=1.0)
+    parser.add_argument("--estimator", default="kinematic_heuristic")
+    parser.add_argument("--library-frames", type=int, default=100_000)
+    args = parser.parse_args()
+    profile = load_profile("default")
+    codec = Codec(profile)
+    t, ids, data = bus_frames(codec, args.hours * 3600.0, np.random.default_rng(0))
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / "bus.log"
+        write_candump(log, t + 1.7e9, ids, data)
+        size_mb = log.stat().st_size / 1e6
+        # warm-up (compile or load the numba cache) on a small log
+        small = Path(tmp) / "small.log"
+        write_candump(small, t[:1000] + 1.7e9, ids[:1000], data[:1000])
+        run_method(latch_log(read_candump(small), profile), profile, args.estimator)
+        timings = []
+        for _ in range(3):
+            started = time.perf_counter()
+            frames = read_candump(log)
+            read_done = time.perf_counter()
+            inputs = latch_log(frames, profile)
+            latch_done = time.perf_counter()
+            estimate = run_method(inputs, profile, args.estimator)
+            done = time.perf_counter()
+            timings.append((done - started, read_done - started, latch_done - read_done,
+                            done - latch_done))
+        total, read_s, latch_s, est_s = min(timings)
+        assert not np.isnan(estimate.out[:, 0]).all()
+        n = len(frames)
+        count, slow = library_path(log, profile, args.estimator, args.library_frames)
+    fast_rate, slow_rate = n / total, count / slow
+    print(f"log: {args.hours:g} h, {n} frames, {len(estimate.t)} ticks, {size_mb:.0f} MB")
+    print(f"slipd replay (read {read_s:.2f} s + decode/latch {latch_s:.2f} s + "
+          f"{args.estimator} {est_s:.2f} s = {total:.2f} s): {fast_rate / 1e6:.2f} M frames/s")
+    print(f"library path (LogReader + cantools + step per tick, {count} frames): "
+          f"{slow_rate / 1e6:.3f} M frames/s")
+    print(f"ratio: {fast_rate / slow_rate:.0f}x; a day of driving (24 h) replays in "
+          f"{24 / args.hours * total:.0f} s")
+    assert math.isfinite(fast_rate)
+
+
+if __name__ == "__main__":
+    main()
