@@ -269,10 +269,13 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
             can_id &= 0x1FFFFFFF
         if length > needed:
             needed = length
-        total_digits = digits + frac_digits
+        # (int_part * 10^n + frac) is exact below 2^53, and one division by an exact power
+        # of ten is then correctly rounded: the same double as Python's float() of the text.
         scale = 10.0**frac_digits
+        exact = digits + frac_digits <= 18 and frac_digits <= 22 and (
+            int_part * 10**frac_digits + frac) < 9007199254740992
         t_out[count] = (int_part * scale + frac) / scale
-        fallback_out[count] = 1 if total_digits > 15 else 0
+        fallback_out[count] = 0 if exact else 1
         id_out[count] = can_id
         flags_out[count] = flags
         dlc_out[count] = length
