@@ -293,7 +293,6 @@ def test_default_profile_describes_parameter_set_2():
         assert veh[Veh[key]] == pytest.approx(d[key], rel=0.01), key
 
 
-@pytest.mark.slow
 def test_profile_roll_stiffness_matches_a_steady_state_circle():
     from slipd.profile import load_profile
     from slipd.sim.vehicle_data import steady_state_test

@@ -48,10 +48,11 @@ POS_X, POS_Y, STEER, VX, YAW, YAW_RATE, ROLL, ROLL_RATE, PITCH, PITCH_RATE, VY =
 Z_S, VZ_S = 11, 12
 OMEGA_FL, OMEGA_FR, OMEGA_RL, OMEGA_RR = 23, 24, 25, 26
 
-#: Model roll (x[6]) -> ISO 8855 roll (positive right side down). Measured: a left turn rolls the
-#: body to the right and x[6] comes out positive, so the model already follows ISO.
+#: Model roll (x[6]) -> ISO 8855 roll (positive right side down). Measured: in a left turn the
+#: body leans to the right (outward) and x[6] comes out negative, so the sign flips.
 ROLL_SIGN = -1.0
-#: Model pitch (x[8]) -> ISO 8855 pitch (positive nose down). Measured: braking gives x[8] > 0.
+#: Model pitch (x[8]) -> ISO 8855 pitch (positive nose down). Measured: braking dives the nose
+#: and x[8] comes out negative, so the sign flips.
 PITCH_SIGN = -1.0
 
 

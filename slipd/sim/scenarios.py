@@ -213,12 +213,14 @@ def banked_road(vehicle: int) -> Plan:
     """Selmanaj et al. 2017, section 5.2 (the banked 'parabolic curve' that their offset
     estimator mistakes for an offset) and 3.1 (gravity through roll): banked straights and
     curves, uphill and downhill grades."""
+    # cross slopes of 2.5 % on straights, curves superelevated up to 10 % (ramps and race
+    # tracks go beyond), grades up to 8 % (mountain roads); banks ramp in over 30 m
     segs = [
-        Segment(150, 0.0, 22.0, bank=5.0 * DEG),
-        Segment(200, 1 / 120.0, 22.0, bank=-8.0 * DEG),  # left curve banked into the turn
-        Segment(150, 0.0, 22.0, grade=0.06),
-        Segment(200, -1 / 90.0, 18.0, bank=6.0 * DEG, grade=-0.04),
-        Segment(150, 0.0, 25.0, bank=-4.0 * DEG, grade=0.08),
+        Segment(150, 0.0, 22.0, bank=1.5 * DEG),
+        Segment(200, 1 / 120.0, 22.0, bank=-6.0 * DEG),  # left curve banked into the turn
+        Segment(150, 0.0, 22.0, bank=-1.5 * DEG, grade=0.06),
+        Segment(200, -1 / 90.0, 18.0, bank=5.0 * DEG, grade=-0.04),
+        Segment(150, 0.0, 25.0, bank=-3.0 * DEG, grade=0.08),
         Segment(200, 1 / 150.0, 25.0, bank=3.0 * DEG),
         Segment(150, 0.0, 25.0, grade=-0.06),
     ]
@@ -309,11 +311,11 @@ for _fn, _dur in (
     (slalom, 19.0),
     (j_turn, 10.0),
     (sine_steer, 12.0),
-    (handling_high_mu, 90.0),
+    (handling_high_mu, 68.0),
     (handling_low_mu, 120.0),
-    (mu_jump, 60.0),
+    (mu_jump, 48.0),
     (straight_offsets, 300.0),
-    (banked_road, 60.0),
+    (banked_road, 55.0),
     (loaded_vehicle, 12.0),
     (snow_drift, 26.0),
     (endurance, 4000.0),
