@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from slipd.channels import N_OUT, ST_INPUT_TIMEOUT, ST_VALID, In, Out, new_u
-from slipd.codec import N_TX, Codec, Tx
+from slipd.codec import N_TX, Codec, DecodeState, Tx
 from slipd.codec.kernels import LATCH_SET, LATCH_TIME
+from slipd.codec.tx import fill_tx
 from slipd.daemon.recorder import FlightRecorder
 from slipd.daemon.service import RealtimeOptions, StateStore, SystemdNotifier, apply_realtime
 from slipd.daemon.stats import Stats, StatsServer
@@ -74,7 +75,7 @@ class Daemon:
         self.log = log
         self.codec = Codec(config.profile)
         self.method = base.load(config.estimator)
-        self.estimator_id = base.available().index(config.estimator)
+        self.estimator_id = float(base.available().index(config.estimator))
         self.vehicle = config.profile.vehicle
         self.required = required_mask(base.required_channels(self.method, config.profile))
         self.state = self.method.init(self.vehicle)
@@ -125,9 +126,14 @@ class Daemon:
         for name in self._frames:
             kernels.encode_frame(plan.plan_i, plan.plan_f, plan.message_rows[name], self.tx, 0,
                                  buffer)
-        scratch_codec = Codec(self.config.profile)
-        scratch_codec.decode(0x7FF, bytes(8), 0.0)
-        scratch_codec.sample(0.0, u)
+        fill_tx(out, self.estimator_id, self.tx)
+        # decode/sample on a throwaway state, so the real latch and counters stay untouched
+        p = self.codec.inputs
+        scratch = DecodeState.new(p.n_messages)
+        kernels.decode_frame(p.plan_i, p.plan_f, p.lookup, 0x7FF, False, 8, buffer, 0.0,
+                             p.timeouts, scratch.latch, scratch.msg_state, scratch.errors,
+                             scratch.scratch)
+        kernels.sample_latch(scratch.latch, self.codec.channel_timeouts, 0.0, u)
         return time.perf_counter() - started
 
     def restore_state(self) -> str:
@@ -231,12 +237,7 @@ class Daemon:
         supervise(u, self.required, out)
         if self.bus_down_since is not None:
             out[Out.STATUS] = float((int(out[Out.STATUS]) & ~ST_VALID) | ST_INPUT_TIMEOUT)
-        tx[: Out.STATUS + 1] = out[: Out.STATUS + 1]
-        for slot in (Tx.BETA, Tx.BETA_RATE, Tx.VX, Tx.VY, Tx.SIGMA_BETA, Tx.ROLL, Tx.MU):
-            if not math.isfinite(tx[slot]):
-                tx[slot] = 0.0  # never valid then (supervise); the bits must be defined
-        tx[Tx.MU_VALID] = 1.0 if math.isfinite(out[Out.MU]) else 0.0
-        tx[Tx.ESTIMATOR_ID] = self.estimator_id
+        fill_tx(out, self.estimator_id, tx)
         self._send("SLIPD_STATE", t_wall)
         self._send("SLIPD_AUX", t_wall)
         status = int(out[Out.STATUS])

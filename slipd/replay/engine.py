@@ -60,9 +60,9 @@ def recorded_ticks(frames: Frames) -> tuple[Frames, np.ndarray, np.ndarray] | No
     log holds no slipd output. In the recorder, file order is processing order, so a tick
     latches exactly the input lines above its SLIPD_STATE line.
     """
-    state_id = Codec.output_plan().frame_id("SLIPD_STATE")
-    outputs = set(Codec.output_plan().frame_id(n) for n in ("SLIPD_STATE", "SLIPD_AUX",
-                                                            "SLIPD_DIAG"))
+    plan = Codec.output_plan()
+    state_id = plan.frame_id("SLIPD_STATE")
+    outputs = {plan.frame_id(n) for n in plan.message_names}
     sent = (frames.flags & FLAG_TX) != 0
     is_output = sent & np.isin(frames.frame_id, list(outputs))
     ticks = sent & (frames.frame_id == state_id)

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from slipd.channels import Out
-from slipd.codec import N_TX, Codec, Tx, kernels
+from slipd.codec import N_TX, Codec, kernels
+from slipd.codec.tx import fill_tx_rows
 from slipd.estimators import base
 from slipd.replay.candump import Frames
 
@@ -43,16 +44,9 @@ def write_csv(path: str | Path, estimates: list) -> None:
 
 
 def tx_values(out: np.ndarray, estimator_id: int) -> np.ndarray:
-    """Output-frame slots [n, N_TX] from estimator outputs [n, N_OUT]."""
+    """Output-frame slots [n, N_TX] from estimator outputs [n, N_OUT] (the daemon's mapping)."""
     values = np.zeros((out.shape[0], N_TX))
-    values[:, : Out.STATUS + 1] = out[:, : Out.STATUS + 1]
-    mu = out[:, Out.MU]
-    values[:, Tx.MU_VALID] = np.isfinite(mu).astype(np.float64)
-    values[:, Tx.MU] = np.where(np.isfinite(mu), mu, 0.0)
-    for slot in (Tx.BETA, Tx.BETA_RATE, Tx.VX, Tx.VY, Tx.SIGMA_BETA, Tx.ROLL):
-        column = values[:, slot]
-        column[~np.isfinite(column)] = 0.0  # status is not VALID then; the bits must be defined
-    values[:, Tx.ESTIMATOR_ID] = estimator_id
+    fill_tx_rows(np.ascontiguousarray(out), float(estimator_id), values)
     return values
 
 

@@ -1,0 +1,35 @@
+"""Estimator outputs -> output-frame slots, the one mapping the daemon and replay share."""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+
+from slipd.channels import Out
+from slipd.codec.plan import Tx
+
+_COPIED = int(Out.STATUS) + 1
+_FINITE_SLOTS = (int(Tx.BETA), int(Tx.BETA_RATE), int(Tx.VX), int(Tx.VY), int(Tx.SIGMA_BETA),
+                 int(Tx.ROLL), int(Tx.MU))
+_MU, _MU_VALID, _ESTIMATOR_ID = int(Tx.MU), int(Tx.MU_VALID), int(Tx.ESTIMATOR_ID)
+
+
+@nb.njit(cache=True)
+def fill_tx(out, estimator_id, tx):
+    """Write SLIPD_STATE/AUX slots from ``out``. A non-finite value becomes 0 (its frame is
+    then not VALID, see supervision.supervise; the bits must still be defined)."""
+    mu_valid = 1.0 if math.isfinite(out[Out.MU]) else 0.0
+    for slot in range(_COPIED):
+        tx[slot] = out[slot]
+    for slot in _FINITE_SLOTS:
+        if not math.isfinite(tx[slot]):
+            tx[slot] = 0.0
+    tx[_MU_VALID] = mu_valid
+    tx[_ESTIMATOR_ID] = estimator_id
+
+
+@nb.njit(cache=True)
+def fill_tx_rows(OUT, estimator_id, TX):
+    for k in range(OUT.shape[0]):
+        fill_tx(OUT[k], estimator_id, TX[k])
