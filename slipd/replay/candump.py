@@ -92,8 +92,8 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
            chan_table, bad_out, fallback_out):
     """Parse every line; returns (n_frames, n_bad, first_error_line, error_code, n_channels,
     needed_width). ``chan_table`` [MAX_CHANNELS, 2] holds (offset, length) of each distinct
-    channel name. ``fallback_out`` marks timestamps with too many digits to parse exactly
-    here (Python re-parses those)."""
+    channel name. ``fallback_out`` holds, per frame, the line number of a timestamp with too
+    many digits to parse exactly here (Python re-parses those lines), else 0."""
     n = buf.shape[0]
     pos = 0
     line_no = 0
@@ -275,7 +275,7 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
         exact = digits + frac_digits <= 18 and frac_digits <= 22 and (
             int_part * 10**frac_digits + frac) < 9007199254740992
         t_out[count] = (int_part * scale + frac) / scale
-        fallback_out[count] = 0 if exact else 1
+        fallback_out[count] = 0 if exact else line_no
         id_out[count] = can_id
         flags_out[count] = flags
         dlc_out[count] = length
@@ -323,7 +323,7 @@ def read_candump(path: str | Path, skip_bad: bool = False) -> Frames:
             chan = np.zeros(n_lines, dtype=np.uint8)
             chan_table = np.zeros((MAX_CHANNELS, 2), dtype=np.int64)
             bad = np.zeros(100, dtype=np.int64)
-            fallback = np.zeros(n_lines, dtype=np.uint8)
+            fallback = np.zeros(n_lines, dtype=np.int64)
             count, n_bad, err_line, err_code, n_chan, needed = _parse(
                 buf, width, skip_bad, t, ids, flags, dlc, data, chan, chan_table, bad, fallback)
             if err_code:
@@ -337,8 +337,9 @@ def read_candump(path: str | Path, skip_bad: bool = False) -> Frames:
             width = 64
         names = [bytes(buf[o:o + n]).decode("ascii", "replace") for o, n in chan_table[:n_chan]]
         if fallback[:count].any():
+            line_starts = np.concatenate(([0], np.flatnonzero(buf == 10) + 1))
             for index in np.flatnonzero(fallback[:count]):
-                t[index] = _python_timestamp(buf, int(index), skip_bad)
+                t[index] = _python_timestamp(buf, line_starts, int(fallback[index]))
         frames = Frames(t[:count], ids[:count], flags[:count], dlc[:count], data[:count],
                         chan[:count], names, str(path), int(n_bad),
                         [int(x) for x in bad[:min(n_bad, 100)]])
@@ -357,20 +358,12 @@ def _line_text(buf: np.ndarray, line_no: int) -> np.ndarray:
     return buf[start:end][:200]
 
 
-def _python_timestamp(buf: np.ndarray, frame_index: int, skip_bad: bool) -> float:
-    """Exact timestamp of frame ``frame_index`` for the rare line with > 15 digits."""
-    lines = bytes(buf).decode("utf-8", "replace").splitlines()
-    frame = -1
-    for line in lines:
-        stripped = line.strip()
-        if not stripped:
-            continue
-        if skip_bad and not stripped.startswith("("):
-            continue
-        frame += 1
-        if frame == frame_index:
-            return float(stripped[1:stripped.index(")")])
-    raise LogFormatError(f"internal: frame {frame_index} not found for timestamp re-parse")
+def _python_timestamp(buf: np.ndarray, line_starts: np.ndarray, line_no: int) -> float:
+    """Exact timestamp of line ``line_no`` for the rare line with > 15 digits."""
+    start = int(line_starts[line_no - 1])
+    end = int(line_starts[line_no]) - 1 if line_no < len(line_starts) else len(buf)
+    line = bytes(buf[start:end]).decode("ascii", "replace").strip()
+    return float(line[1:line.index(")")])
 
 
 @nb.njit(cache=True)
