@@ -114,24 +114,66 @@ def parse_map(entries: list[str]) -> dict[str, str]:
     return mapping
 
 
-def play_logs(args: argparse.Namespace) -> int:
-    """``slipd replay LOG --realtime``: play each log in turn onto the bus."""
-    import can
+class BusRouter:
+    """Sends each message on the bus of its (mapped) channel, as ``canplayer FROM=TO`` does.
 
+    With no map every frame goes to ``default_channel``. With a map only frames logged on a
+    mapped channel are played (the others are counted in ``unmapped``), each on its own bus.
+    """
+
+    def __init__(self, interface: str, default_channel: str, mapping: dict[str, str]) -> None:
+        import can
+
+        self.mapping = mapping
+        self.unmapped = 0
+        self.buses: dict[str, can.BusABC] = {}
+        targets = sorted(set(mapping.values())) if mapping else [default_channel]
+        try:
+            for target in targets:
+                self.buses[target] = can.Bus(interface=interface, channel=target)
+        except (can.CanError, OSError, ValueError) as exc:
+            self.shutdown()
+            raise ConfigError(f"cannot open {interface} bus {target!r}: {exc}") from exc
+        self.default = None if mapping else self.buses[default_channel]
+
+    def send(self, message) -> None:
+        if self.default is not None:
+            self.default.send(message)
+            return
+        target = self.mapping.get(str(message.channel))
+        if target is None:
+            self.unmapped += 1
+            return
+        self.buses[target].send(message)
+
+    def shutdown(self) -> None:
+        for bus in self.buses.values():
+            bus.shutdown()
+
+
+def play_logs(args: argparse.Namespace) -> int:
+    """``slipd replay LOG --realtime``: play each log in turn onto the bus(es)."""
     from slipd.replay.readers import read_frames
 
-    mapping = parse_map(args.map)
-    try:
-        bus = can.Bus(interface=args.interface, channel=args.channel)
-    except (can.CanError, OSError, ValueError) as exc:
-        raise ConfigError(f"cannot open {args.interface} bus {args.channel!r}: {exc}") from exc
+    router = BusRouter(args.interface, args.channel, parse_map(args.map))
     try:
         for log in args.logs:
             frames = read_frames(log, skip_bad=args.skip_bad)
-            report = play(to_messages(frames, mapping), bus, args.speed, args.loop)
+            if frames.bad_lines:
+                print(f"{log}: skipped {frames.bad_lines} malformed line(s), first at line(s) "
+                      f"{frames.bad_line_numbers[:10]}")
+            errors = int(np.count_nonzero(frames.flags & FLAG_ERROR))
+            if errors:
+                print(f"{log}: {errors} error frame(s) in the log are not played (a bus "
+                      "cannot send them)")
+            router.unmapped = 0
+            report = play(to_messages(frames), router, args.speed, args.loop)
             print(f"{log}: {report.summary()}")
+            if router.unmapped:
+                print(f"{log}: {router.unmapped} frame(s) on channels not named in --map were "
+                      "not played")
     except KeyboardInterrupt:
         pass
     finally:
-        bus.shutdown()
+        router.shutdown()
     return 0
