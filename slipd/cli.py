@@ -20,6 +20,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("slipd.commands.sim", "simulate scenarios: candump log + ground truth"),
     "eval": ("slipd.commands.eval", "evaluate estimators on logs against ground truth"),
     "stats": ("slipd.commands.stats", "show a running daemon's latency statistics"),
+    "import": ("slipd.commands.import_log", "turn recorded signals (CSV, .mat) into a candump "
+               "log through the codec"),
 }
 
 
