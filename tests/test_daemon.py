@@ -3,18 +3,24 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import socket
 import threading
 import time
+import urllib.request
 
 import can
 import cantools
 import numpy as np
+from prometheus_client.parser import text_string_to_metric_families
 
 from slipd.channels import ST_INPUT_TIMEOUT, ST_VALID, In
 from slipd.codec import Codec
 from slipd.daemon.loop import Daemon, DaemonConfig
 from slipd.daemon.service import StateStore
-from slipd.daemon.stats import query
+from slipd.daemon.stats import Stats, StatsServer, query
+from slipd.estimators.preprocess import Offsets
 from slipd.profile import load_profile
 from slipd.replay.candump import FLAG_TX, read_candump
 from slipd.replay.engine import latch_log_or_recording, run_method
@@ -58,7 +64,7 @@ def _run(tmp_path, channel, seconds, estimator="zero", **feed_kwargs):
                           channel=channel, duration=seconds + 0.5,
                           recorder=tmp_path / "recorder.log",
                           stats_socket=str(tmp_path / "stats.sock"),
-                          state_file=tmp_path / "state.json")
+                          prometheus="127.0.0.1:0", state_file=tmp_path / "state.json")
     daemon = Daemon(config, bus=daemon_bus, log=lambda *_: None)
     snapshots = []
 
@@ -71,6 +77,9 @@ def _run(tmp_path, channel, seconds, estimator="zero", **feed_kwargs):
         daemon.ready.wait(60)
         time.sleep(0.5)
         snapshots.append(query(str(tmp_path / "stats.sock")))
+        host, port = daemon.server.http_address
+        with urllib.request.urlopen(f"http://{host}:{port}/metrics", timeout=5) as response:
+            snapshots.append(response.read().decode())
 
     threads = [threading.Thread(target=drive), threading.Thread(target=ask_stats)]
     for thread in threads:
@@ -113,9 +122,14 @@ def test_state_frames_at_100_hz_and_recorder_replays_byte_for_byte(tmp_path):
     # what went on the bus is what was recorded
     assert [bytes(m.data) for m in states] == [bytes(r) for r in
                                                recorded.data[recorded.frame_id == state_id]]
-    # the stats socket answered while the loop ran
-    assert snapshots and snapshots[0]["counters"]["ticks"] > 0
+    # the stats socket and the Prometheus endpoint answered while the loop ran
+    assert len(snapshots) == 2 and snapshots[0]["counters"]["ticks"] > 0
     assert "cycle_latency_us" in snapshots[0]
+    families = {f.name: f for f in text_string_to_metric_families(snapshots[1])}
+    ticks = families["slipd_ticks"].samples[0].value  # the parser drops the _total suffix
+    assert ticks >= snapshots[0]["counters"]["ticks"] > 0
+    quantiles = {s.labels.get("quantile") for s in families["slipd_cycle_latency_us"].samples}
+    assert {"0.5", "0.99", "0.999"} <= quantiles
 
 
 def test_input_timeout_sets_status_within_three_ticks_and_recovers(tmp_path):
@@ -155,3 +169,86 @@ def test_state_store_survives_a_corrupt_file(tmp_path):
     assert values == {2: 2.0, 3: 3.0}
     assert json.loads((tmp_path / "state.json").read_text())["method"] == "kinematic_heuristic"
     assert store.load("dk_ekf", 10)[0] == {}
+
+
+def test_prometheus_endpoint_never_waits_for_a_slow_client():
+    server = StatsServer(None, "127.0.0.1:0")
+    stats = Stats()
+    for value in (100, 200, 300):
+        stats.record("cycle_latency_us", value)
+    try:
+        silent = socket.create_connection(server.http_address)
+        time.sleep(0.05)
+        started = time.perf_counter()
+        assert server.poll(stats.snapshot) == 0  # connected, no request yet: not waited for
+        assert time.perf_counter() - started < 0.005
+        silent.sendall(b"GET /metrics HTTP/1.0\r\n\r\n")
+        deadline = time.monotonic() + 2
+        while not server.poll(stats.snapshot) and time.monotonic() < deadline:
+            time.sleep(0.001)
+        body = silent.makefile("rb").read().decode()
+        silent.close()
+        head, _, text = body.partition("\r\n\r\n")
+        assert head.startswith("HTTP/1.0 200")
+        families = {f.name: f for f in text_string_to_metric_families(text)}
+        p50 = [s for s in families["slipd_cycle_latency_us"].samples
+               if s.labels.get("quantile") == "0.5"]
+        assert p50 and p50[0].value == 200
+        assert families["slipd_cycle_latency_us_max"].samples[0].value == 300
+    finally:
+        server.close()
+
+
+def test_sigterm_saves_learned_offsets_and_a_restart_restores_them(tmp_path):
+    """SIGTERM to the process: the loop stops, the offsets learned at standstill are saved;
+    the next start restores them (Selmanaj: initialise from the last estimate at key-on)."""
+    channel = "d-sigterm"
+    config = DaemonConfig(profile=PROFILE, estimator="kinematic_heuristic", interface="virtual",
+                          channel=channel, state_file=tmp_path / "state.json")
+    feeder_bus = can.Bus(interface="virtual", channel=channel)
+    daemon = Daemon(config, bus=can.Bus(interface="virtual", channel=channel),
+                    log=lambda *_: None)
+    gyro_offset = 0.02  # rad/s on the yaw gyro of a car standing still
+    yaw_slot = daemon.persistent[0] + Offsets.YAW_RATE
+
+    def stand_still_then_sigterm():
+        daemon.ready.wait(60)
+        encoder = Codec(PROFILE)
+        started = time.monotonic()
+        k = 0
+        while time.monotonic() - started < 3.0:
+            for name, values in (
+                ("IMU_ACCEL", {In.AX: 0.0, In.AY: 0.0, In.AZ: 9.81}),
+                ("IMU_RATE", {In.YAW_RATE: gyro_offset, In.ROLL_RATE: 0.0, In.PITCH_RATE: 0.0}),
+                ("STEERING", {In.STEER: 0.0, In.STEER_RATE: 0.0}),
+                ("WHEEL_SPEEDS", dict.fromkeys(WHEELS, 0.0)),
+            ):
+                frame_id, data = encoder.encode_channels(
+                    name, {c: np.array([v]) for c, v in values.items()})
+                feeder_bus.send(can.Message(arbitration_id=frame_id, data=bytes(data[0]),
+                                            is_extended_id=False))
+            k += 1
+            time.sleep(max(0.0, started + k * 0.01 - time.monotonic()))
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    feeder = threading.Thread(target=stand_still_then_sigterm)
+    previous = signal.getsignal(signal.SIGTERM)
+    feeder.start()
+    final = daemon.run()  # main thread: the daemon's own SIGTERM handler stops it
+    feeder.join()
+    assert signal.getsignal(signal.SIGTERM) is previous  # handlers restored after the run
+    assert final["counters"]["ticks"] > 250
+    learned = daemon.state[yaw_slot]
+    assert 0.0 < learned < gyro_offset  # learning towards the offset (150 s settling)
+    saved = json.loads((tmp_path / "state.json").read_text())
+    assert saved["method"] == "kinematic_heuristic"
+    assert saved["state"][str(yaw_slot)] == learned
+
+    messages = []
+    restarted = Daemon(config, bus=can.Bus(interface="virtual", channel=channel),
+                       log=messages.append)
+    assert restarted.state[yaw_slot] == 0.0
+    assert "restored" in restarted.restore_state()
+    assert restarted.state[yaw_slot] == learned
+    restarted.bus.shutdown()
+    feeder_bus.shutdown()

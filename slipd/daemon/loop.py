@@ -293,9 +293,10 @@ class Daemon:
         warm = self.warm_up()
         self.log(f"slipd: estimator {config.estimator} on {config.interface}:{config.channel}"
                  f", numba warm-up {warm * 1e3:.0f} ms")
+        previous_handlers = {}
         if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGTERM, self.request_stop)
-            signal.signal(signal.SIGINT, self.request_stop)
+            for signum in (signal.SIGTERM, signal.SIGINT):
+                previous_handlers[signum] = signal.signal(signum, self.request_stop)
         self.notifier.notify("READY=1\nSTATUS=running")
         self.running = True
         self.ready.set()
@@ -347,6 +348,8 @@ class Daemon:
                     next_persist += PERSIST_INTERVAL
         finally:
             self.save_state()
+            for signum, handler in previous_handlers.items():
+                signal.signal(signum, handler)
             self.notifier.notify("STOPPING=1")
             self.server.close()
             if self.recorder is not None:

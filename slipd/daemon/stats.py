@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+import time
 from dataclasses import dataclass, field
 
 from hdrh.histogram import HdrHistogram
@@ -54,29 +55,57 @@ class Stats:
 
 
 def prometheus_text(snapshot: dict) -> bytes:
-    """The snapshot in Prometheus' text exposition format."""
+    """The snapshot in Prometheus' text exposition format (one group per metric family)."""
     lines = []
+
+    def family(name: str, kind: str, help_text: str, samples: list[tuple[str, object]]) -> None:
+        """``samples``: (suffix-and-labels, value), e.g. ('{quantile="0.5"}', 3), ('_count', 9)."""
+        lines.extend([f"# HELP {name} {help_text}", f"# TYPE {name} {kind}"])
+        lines.extend(f"{name}{suffix} {value}" for suffix, value in samples)
+
     for name, value in snapshot["counters"].items():
-        lines += [f"# TYPE slipd_{name}_total counter", f"slipd_{name}_total {value}"]
+        family(f"slipd_{name}_total", "counter", name.replace("_", " "), [("", value)])
+    family("slipd_rx_frames_by_id_total", "counter", "received frames per CAN ID",
+           [(f'{{id="{frame_id}"}}', count)
+            for frame_id, count in snapshot.get("rx_per_id", {}).items()])
+    family("slipd_decode_frames_total", "counter", "input frames per message and decode result",
+           [(f'{{message="{message}",result="{kind}"}}', value)
+            for message, counts in snapshot["decode_errors"].items()
+            for kind, value in counts.items()])
     for name in HISTOGRAMS:
         h = snapshot[name]
-        lines.append(f"# TYPE slipd_{name} summary")
-        for q, key in (("0.5", "p50"), ("0.99", "p99"), ("0.999", "p99.9"), ("1", "max")):
-            lines.append(f'slipd_{name}{{quantile="{q}"}} {h[key]}')
-        lines.append(f"slipd_{name}_count {h['count']}")
-    for message, counts in snapshot["decode_errors"].items():
-        for kind, value in counts.items():
-            lines.append(f'slipd_rx_frames_total{{message="{message}",result="{kind}"}} {value}')
+        family(f"slipd_{name}", "summary", f"{name.replace('_', ' ')} (HDR histogram)",
+               [(f'{{quantile="{q}"}}', h[key])
+                for q, key in (("0.5", "p50"), ("0.99", "p99"), ("0.999", "p99.9"))]
+               + [("_count", h["count"])])
+        family(f"slipd_{name}_max", "gauge", f"largest {name.replace('_', ' ')}",
+               [("", h["max"])])
+    for key, help_text in (("beta_deg", "latest sideslip estimate, deg"),
+                           ("status", "latest status bits"),
+                           ("uptime_s", "seconds since the loop started")):
+        if isinstance(snapshot.get(key), int | float):
+            family(f"slipd_{key}", "gauge", help_text, [("", snapshot[key])])
     return ("\n".join(lines) + "\n").encode()
 
 
+HTTP_HEADER_LIMIT = 8192
+HTTP_CLIENT_PATIENCE = 1.0  # s a scraper may take to send its request before it is dropped
+
+
 class StatsServer:
-    """Non-blocking unix-socket (JSON) and loopback-HTTP (Prometheus) endpoints."""
+    """Non-blocking unix-socket (JSON) and loopback-HTTP (Prometheus) endpoints.
+
+    ``poll`` never waits: a scraper whose request has not fully arrived is kept and looked at
+    again after the next tick (dropped after HTTP_CLIENT_PATIENCE), so a slow or silent
+    client cannot delay the loop.
+    """
 
     def __init__(self, unix_path: str | None, prometheus: str | None):
         self.unix = None
         self.http = None
         self.unix_path = unix_path
+        self.http_address: tuple[str, int] | None = None
+        self._pending: list[tuple[socket.socket, bytes, float]] = []
         if unix_path:
             if os.path.exists(unix_path):
                 os.unlink(unix_path)
@@ -92,36 +121,74 @@ class StatsServer:
             self.http.bind((host, int(port)))
             self.http.listen(4)
             self.http.setblocking(False)
+            self.http_address = self.http.getsockname()
 
     def poll(self, snapshot_fn) -> int:
         """Answer pending requests (at most a few); returns how many were served."""
         served = 0
-        for server, kind in ((self.unix, "json"), (self.http, "http")):
-            if server is None:
-                continue
+        if self.unix is not None:
             for _ in range(4):
                 try:
-                    conn, _ = server.accept()
+                    conn, _ = self.unix.accept()
                 except (BlockingIOError, InterruptedError):
                     break
                 with conn:
-                    conn.settimeout(0.05)
-                    snapshot = snapshot_fn()
+                    conn.setblocking(False)
                     try:
-                        if kind == "json":
-                            conn.sendall(json.dumps(snapshot).encode() + b"\n")
-                        else:
-                            conn.recv(4096)
-                            body = prometheus_text(snapshot)
-                            conn.sendall(b"HTTP/1.0 200 OK\r\nContent-Type: text/plain; "
-                                         b"version=0.0.4\r\nContent-Length: "
-                                         + str(len(body)).encode() + b"\r\n\r\n" + body)
+                        conn.sendall(json.dumps(snapshot_fn()).encode() + b"\n")
                     except OSError:
                         pass
                 served += 1
+        if self.http is not None:
+            now = time.monotonic()
+            for _ in range(4):
+                try:
+                    conn, _ = self.http.accept()
+                except (BlockingIOError, InterruptedError):
+                    break
+                conn.setblocking(False)
+                self._pending.append((conn, b"", now))
+            still_waiting = []
+            for conn, request, since in self._pending:
+                try:
+                    chunk = conn.recv(4096)
+                    request += chunk
+                    complete = b"\r\n\r\n" in request or b"\n\n" in request or not chunk
+                except BlockingIOError:
+                    complete = False
+                except OSError:
+                    conn.close()
+                    continue
+                if complete or len(request) > HTTP_HEADER_LIMIT:
+                    self._answer_http(conn, request, snapshot_fn)
+                    served += 1
+                elif now - since > HTTP_CLIENT_PATIENCE:
+                    conn.close()
+                else:
+                    still_waiting.append((conn, request, since))
+            self._pending = still_waiting
         return served
 
+    @staticmethod
+    def _answer_http(conn: socket.socket, request: bytes, snapshot_fn) -> None:
+        with conn:
+            if request.startswith(b"GET /metrics") or request.startswith(b"GET / "):
+                body = prometheus_text(snapshot_fn())
+                head = (b"HTTP/1.0 200 OK\r\nContent-Type: text/plain; version=0.0.4\r\n"
+                        b"Content-Length: " + str(len(body)).encode() + b"\r\n\r\n")
+            else:
+                body = b"slipd serves GET /metrics\n"
+                head = (b"HTTP/1.0 404 Not Found\r\nContent-Type: text/plain\r\n"
+                        b"Content-Length: " + str(len(body)).encode() + b"\r\n\r\n")
+            try:
+                conn.sendall(head + body)
+            except OSError:
+                pass
+
     def close(self) -> None:
+        for conn, _, _ in self._pending:
+            conn.close()
+        self._pending = []
         for server in (self.unix, self.http):
             if server is not None:
                 server.close()
