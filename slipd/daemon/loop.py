@@ -211,7 +211,6 @@ class Daemon:
             time.sleep(remaining)
 
     def _send(self, name: str, t_record: float) -> None:
-        plan = self.codec.outputs
         buffer = self._buffers[name]
         self.codec.encode_output(name, self.tx, buffer)
         message = self._messages[name]
@@ -227,7 +226,7 @@ class Daemon:
         else:
             self.stats.counters["tx_errors"] += 1
         if self.recorder is not None:
-            self.recorder.frame(t_record, plan.frame_id(name), False, message.data, rx=False)
+            self.recorder.frame(t_record, message.arbitration_id, False, message.data, rx=False)
 
     def tick(self, t_wall: float) -> None:
         """One cycle's work after the wake-up: latch -> step -> supervise -> encode -> send."""

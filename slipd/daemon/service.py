@@ -6,6 +6,7 @@ No threads: everything here is called from the loop's thread at start, at 1 Hz o
 from __future__ import annotations
 
 import ctypes
+import errno
 import gc
 import json
 import math
@@ -21,7 +22,7 @@ import numpy as np
 from slipd.errors import ConfigError
 
 PR_SET_TIMERSLACK = 29
-MCL_CURRENT_FUTURE = 3
+MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT = 1, 2, 4
 
 
 class SystemdNotifier:
@@ -77,10 +78,17 @@ def apply_realtime(options: RealtimeOptions) -> list[str]:
             raise ConfigError(f"CPU affinity {{{options.cpu}}} refused: {exc}") from exc
         report.append(f"pinned to CPU {options.cpu}")
     if options.mlockall:
-        if libc.mlockall(MCL_CURRENT_FUTURE) != 0:
+        # MCL_ONFAULT locks pages as they are touched instead of faulting in every mapped
+        # page at once: measured, plain MCL_CURRENT took the daemon from 168 MB to 462 MB
+        # resident (all of LLVM and BLAS). The warm-up runs every kernel before the loop, so
+        # the loop's pages are resident and locked when it starts.
+        if libc.mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT) == 0:
+            report.append("memory locked as touched (mlockall MCL_ONFAULT)")
+        elif ctypes.get_errno() == errno.EINVAL and libc.mlockall(MCL_CURRENT | MCL_FUTURE) == 0:
+            report.append("memory locked (mlockall; kernel without MCL_ONFAULT)")
+        else:
             raise ConfigError(f"mlockall refused: {os.strerror(ctypes.get_errno())} "
                               "(needs CAP_IPC_LOCK or LimitMEMLOCK=infinity)")
-        report.append("memory locked (mlockall)")
     if options.sched_fifo:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(options.sched_fifo))

@@ -1,0 +1,250 @@
+"""The daemon under a full bus: cycle latency, deadline misses, CPU, RSS and warm start.
+
+``slipd run`` runs as its own process; a feeder process puts a simulated drive on the bus at
+the profile's rates plus unrelated IDs up to ``--rate`` frames/s (4,000/s is a 500 kbit/s bus
+at ~70 % load with 8-byte frames); this process listens to the daemon's output frames. Each
+mode is run in turn: ``plain`` (no real-time settings) and ``realtime`` (SCHED_FIFO 50,
+mlockall, timer slack 1 ns, gc freeze, daemon pinned to the last CPU, feeder to the first).
+
+Interface: ``slipd_unix`` (default; slipd.daemon.unixbus, unix datagram sockets between the
+processes: this machine kind has no vcan and python-can's virtual bus is in-process only) or
+``socketcan`` with ``--channel vcan0`` where the kernel has CAN.
+
+    .venv/bin/python -m benchmarks.daemon_latency --duration 600
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+TARGETS = {"deadline misses": 0, "cycle p99 us": 300, "RSS MB": 150, "warm start s": 2.0}
+MODES = {
+    "plain": [],
+    "realtime": ["--sched-fifo", "50", "--mlockall", "--timer-slack-ns", "1", "--gc-freeze"],
+}
+
+
+def bus_schedule(rate: float, seed: int = 0):
+    """One loop of the feed: (t, frame_id, payload) of a simulated drive at the profile's rates,
+    plus unrelated standard IDs spread evenly to make ``rate`` frames/s in total."""
+    from slipd.profile import load_profile
+    from slipd.sim import simulate
+    from slipd.sim.writer import encode_frames
+
+    profile = load_profile("default")
+    result = simulate("handling_high_mu", seed=seed)
+    t, ids, data, dlc = encode_frames(result, profile, epoch=0.0)
+    t = t - t[0]
+    span = float(t[-1]) + 0.01
+    n_filler = max(0, int(rate * span) - len(t))
+    rng = np.random.default_rng(seed)
+    used = set(ids.tolist())
+    pool = np.array([i for i in range(0x400, 0x7F0) if i not in used])
+    filler_t = np.arange(n_filler) * (span / max(n_filler, 1))
+    filler_ids = rng.choice(pool, n_filler)
+    filler_data = rng.integers(0, 256, (n_filler, 8), dtype=np.uint8)
+    all_t = np.concatenate([t, filler_t])
+    order = np.argsort(all_t, kind="stable")
+    payloads = [bytes(row[:n]) for row, n in zip(data, dlc, strict=True)]
+    payloads += [bytes(row) for row in filler_data]
+    all_ids = np.concatenate([ids, filler_ids])
+    return span, [(float(all_t[i]), int(all_ids[i]), payloads[i]) for i in order]
+
+
+def feeder(interface: str, channel: str, rate: float, duration: float, cpu: int | None,
+           ready, report) -> None:
+    """Send the schedule in 1 ms slots on absolute deadlines until ``duration`` is over."""
+    import can
+
+    if cpu is not None:
+        os.sched_setaffinity(0, {cpu})
+    span, schedule = bus_schedule(rate)
+    bus = can.Bus(interface=interface, channel=channel)
+    messages = [can.Message(arbitration_id=i, data=d, is_extended_id=False)
+                for _, i, d in schedule]
+    times = np.array([t for t, _, _ in schedule])
+    ready.set()
+    started = time.monotonic()
+    sent = errors = 0
+    late_ms = []
+    cycle = k = 0
+    try:
+        while True:
+            deadline = started + cycle * span + times[k]
+            if deadline - started >= duration:
+                break
+            now = time.monotonic()
+            if deadline > now:
+                time.sleep(deadline - now)
+                now = time.monotonic()
+            if k % 16 == 0:
+                late_ms.append((now - deadline) * 1e3)
+            try:
+                bus.send(messages[k])
+                sent += 1
+            except (can.CanError, OSError):
+                errors += 1
+            k += 1
+            if k == len(messages):
+                k = 0
+                cycle += 1
+    finally:
+        report.put({"sent": sent, "errors": errors, "seconds": time.monotonic() - started,
+                    "late_ms_p99": float(np.percentile(late_ms, 99)) if late_ms else 0.0,
+                    "dropped": getattr(bus, "dropped", 0)})
+        bus.shutdown()
+
+
+def process_figures(pid: int) -> dict:
+    status = Path(f"/proc/{pid}/status").read_text()
+    fields = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
+    stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    return {"rss_mb": int(fields["VmRSS"].split()[0]) / 1024,
+            "rss_peak_mb": int(fields["VmHWM"].split()[0]) / 1024,
+            "rss_anon_mb": int(fields["RssAnon"].split()[0]) / 1024,
+            "rss_file_mb": int(fields["RssFile"].split()[0]) / 1024,
+            "minor_faults": int(stat[7]), "major_faults": int(stat[9]),
+            "cpu_s": (int(stat[11]) + int(stat[12])) / ticks}
+
+
+def run_mode(mode: str, args, workdir: Path) -> dict:
+    import can
+
+    from slipd.codec import Codec
+    from slipd.daemon.stats import query
+    from slipd.profile import load_profile
+
+    outputs = Codec(load_profile("default")).outputs
+    state_id = outputs.frame_id("SLIPD_STATE")
+    channel = args.channel or str(workdir / f"bus-{mode}")
+    n_cpu = os.cpu_count() or 1
+    realtime = mode == "realtime"
+    listener = can.Bus(interface=args.interface, channel=channel,
+                       can_filters=[{"can_id": state_id, "can_mask": 0x7FF, "extended": False}])
+    ctx = mp.get_context("spawn")
+    ready, report = ctx.Event(), ctx.Queue()
+    feed = ctx.Process(target=feeder, args=(args.interface, channel, args.rate,
+                                             args.duration + 15.0,
+                                             0 if realtime and n_cpu > 1 else None,
+                                             ready, report))
+    feed.start()
+    if not ready.wait(120):
+        raise SystemExit("feeder did not start")
+    stats_socket = str(workdir / f"stats-{mode}.sock")
+    command = [str(Path(sys.executable).with_name("slipd")), "run", "--interface", args.interface,
+               "--channel", channel, "--estimator", args.estimator, "--stats-socket",
+               stats_socket, "--duration", str(args.duration + 3.0), *MODES[mode]]
+    if realtime and n_cpu > 1:
+        command += ["--cpu", str(n_cpu - 1)]
+    started = time.monotonic()
+    daemon = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True)
+    first_frame = None
+    frames = 0
+    measure_at = None
+    snapshot, figures, cpu_before = None, None, None
+    while daemon.poll() is None:
+        message = listener.recv(0.2)
+        now = time.monotonic()
+        if message is not None and message.arbitration_id == state_id:
+            frames += 1
+            if first_frame is None:
+                first_frame = now - started
+                measure_at = now + args.duration
+                cpu_before = (now, process_figures(daemon.pid))
+        if measure_at is not None and now >= measure_at and snapshot is None:
+            snapshot = query(stats_socket)
+            figures = process_figures(daemon.pid)
+            before = cpu_before[1]
+            figures["cpu_percent"] = 100 * (figures["cpu_s"] - before["cpu_s"]) / (
+                now - cpu_before[0])
+            figures["faults_in_run"] = (figures["minor_faults"] - before["minor_faults"]
+                                        + figures["major_faults"] - before["major_faults"])
+    log = daemon.stdout.read()
+    feed.join(30)
+    fed = report.get(timeout=10) if not report.empty() else {}
+    if feed.is_alive():
+        feed.terminate()
+    listener.shutdown()
+    if snapshot is None:
+        raise SystemExit(f"{mode}: the daemon stopped before the measurement:\n{log}")
+    return {"mode": mode, "snapshot": snapshot, "figures": figures, "warm_start_s": first_frame,
+            "frames_seen": frames, "feeder": fed, "log": log}
+
+
+def print_result(result: dict, duration: float) -> None:
+    snap, fig, fed = result["snapshot"], result["figures"], result["feeder"]
+    cycle, compute = snap["cycle_latency_us"], snap["compute_us"]
+    wake, counters = snap["wakeup_lateness_us"], snap["counters"]
+    rx_rate = counters["rx_frames"] / snap["uptime_s"]
+    print(f"--- {result['mode']}: {counters['ticks']} ticks in {snap['uptime_s']:.0f} s, "
+          f"{counters['valid_ticks']} valid; bus fed at "
+          f"{fed.get('sent', 0) / max(fed.get('seconds', 1), 1e-9):.0f} frames/s "
+          f"(feeder p99 late {fed.get('late_ms_p99', float('nan')):.2f} ms), daemon received "
+          f"{rx_rate:.0f} frames/s after kernel/software filters")
+    print(f"  cycle latency us: p50 {cycle['p50']} p99 {cycle['p99']} p99.9 {cycle['p99.9']} "
+          f"max {cycle['max']}")
+    print(f"  compute us: p50 {compute['p50']} p99 {compute['p99']}; wake-up lateness us: "
+          f"p50 {wake['p50']} p99 {wake['p99']} max {wake['max']}")
+    print(f"  deadline misses {counters['deadline_misses']}, tx errors {counters['tx_errors']}, "
+          f"input timeouts {counters['input_timeouts']}")
+    print(f"  CPU {fig['cpu_percent']:.1f} % of one core, RSS {fig['rss_mb']:.0f} MB (peak "
+          f"{fig['rss_peak_mb']:.0f} MB; anonymous {fig['rss_anon_mb']:.0f} MB, file-backed "
+          f"{fig['rss_file_mb']:.0f} MB), page faults while measured {fig['faults_in_run']}, "
+          f"warm start to first frame {result['warm_start_s']:.2f} s")
+    checks = {"deadline misses": counters["deadline_misses"], "cycle p99 us": cycle["p99"],
+              "RSS MB": fig["rss_peak_mb"], "warm start s": result["warm_start_s"]}
+    verdict = ", ".join(f"{k} {v:.4g} {'ok' if v <= TARGETS[k] else 'OVER'} (<= {TARGETS[k]})"
+                        for k, v in checks.items())
+    print(f"  targets: {verdict}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=60.0, help="measured seconds per mode")
+    parser.add_argument("--rate", type=float, default=4000.0, help="bus frames/s")
+    parser.add_argument("--estimator", default="kinematic_heuristic")
+    parser.add_argument("--modes", default="plain,realtime")
+    parser.add_argument("--interface", default="slipd_unix")
+    parser.add_argument("--channel", help="bus channel (slipd_unix: a fresh directory)")
+    parser.add_argument("--json", type=Path, help="also write the figures as JSON")
+    args = parser.parse_args()
+    workdir = Path(tempfile.mkdtemp(prefix="slipd-latency-"))
+    try:
+        # A short run first fills the numba cache, so the measured starts are warm starts.
+        subprocess.run([str(Path(sys.executable).with_name("slipd")), "run", "--interface",
+                        args.interface, "--channel", args.channel or str(workdir / "warm"),
+                        "--estimator", args.estimator, "--duration", "0.2"],
+                       check=True, capture_output=True)
+        print(f"daemon: slipd run --estimator {args.estimator} on {args.interface} "
+              f"(feeder in another process), {args.duration:g} s per mode, "
+              f"{args.rate:g} frames/s offered, {os.cpu_count()} CPUs")
+        results = []
+        for mode in args.modes.split(","):
+            result = run_mode(mode, args, workdir)
+            print_result(result, args.duration)
+            results.append(result)
+        if len(results) == 2:
+            a, b = (r["snapshot"]["cycle_latency_us"]["p99"] for r in results)
+            print(f"cycle p99 {results[1]['mode']} / {results[0]['mode']}: {b / max(a, 1):.2f}")
+        if args.json:
+            args.json.write_text(json.dumps(
+                [{k: v for k, v in r.items() if k != "log"} for r in results], indent=2))
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,143 @@
+"""A CAN bus between processes of one machine over unix datagram sockets (python-can plugin).
+
+``can.Bus(interface="slipd_unix", channel="/run/slipd-bus")``: the channel is a directory;
+every participant binds one socket file in it and sends each frame to every other socket
+there, so all participants see each other's frames as on a CAN bus. Datagrams carry the
+SocketCAN wire formats (``struct can_frame``, 16 bytes; ``struct canfd_frame``, 72 bytes);
+receive timestamps are taken at reception on CLOCK_REALTIME, as the kernel stamps SocketCAN
+frames.
+
+Why it exists: this project's development machines have no CAN in the kernel, python-can's
+``virtual`` bus is in-process only, and its ``udp_multicast`` leaves the machine. The
+daemon's latency benchmark needs its bus feeder in another process (a feeder thread would
+hold the GIL the loop needs), so it runs on this transport; cross-process tests of the real
+thing run on vcan in the VM (tests/vm). Filters are applied in software by python-can.
+
+A receiver whose socket buffer is full loses that frame, like a SocketCAN socket whose
+receive queue overflows; the sender counts such losses in ``dropped``.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import socket
+import struct
+import time
+from pathlib import Path
+
+import can
+
+CAN_EFF_FLAG = 0x80000000
+CAN_RTR_FLAG = 0x40000000
+CAN_ERR_FLAG = 0x20000000
+CANFD_BRS = 0x01
+CANFD_ESI = 0x02
+CLASSIC = struct.Struct("<IB3x8s")  # struct can_frame
+FD = struct.Struct("<IBB2x64s")  # struct canfd_frame
+PEER_REFRESH_S = 0.2  # how often the directory is re-read for participants that came or went
+RECEIVE_BUFFER = 1 << 20
+
+
+class UnixDatagramBus(can.BusABC):
+    """See the module docstring. ``channel``: the bus directory (created if missing)."""
+
+    def __init__(self, channel: str, can_filters=None, receive_own_messages: bool = False,
+                 **kwargs) -> None:
+        self.directory = Path(channel)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.path = self.directory / f"{os.getpid()}-{id(self):x}.sock"
+        self.socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
+        self.socket.bind(str(self.path))
+        self.socket.setblocking(False)
+        self.receive_own_messages = receive_own_messages
+        self.channel_info = f"unix datagram bus {self.directory}"
+        self.dropped = 0
+        self._peers: list[str] = []
+        self._peers_read = 0.0
+        self._own: list[can.Message] = []
+        super().__init__(channel=channel, can_filters=can_filters, **kwargs)
+
+    def fileno(self) -> int:
+        return self.socket.fileno()
+
+    def _refresh_peers(self) -> None:
+        own = str(self.path)
+        self._peers = [str(p) for p in self.directory.glob("*.sock") if str(p) != own]
+        self._peers_read = time.monotonic()
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if time.monotonic() - self._peers_read > PEER_REFRESH_S:
+            self._refresh_peers()
+        frame_id = msg.arbitration_id | (CAN_EFF_FLAG if msg.is_extended_id else 0)
+        if msg.is_remote_frame:
+            frame_id |= CAN_RTR_FLAG
+        data = bytes(msg.data or b"")
+        if msg.is_fd:
+            flags = (CANFD_BRS if msg.bitrate_switch else 0) | (
+                CANFD_ESI if msg.error_state_indicator else 0)
+            datagram = FD.pack(frame_id, len(data), flags, data)
+        else:
+            datagram = CLASSIC.pack(frame_id, msg.dlc, data)
+        gone = []
+        for peer in self._peers:
+            try:
+                self.socket.sendto(datagram, peer)
+            except BlockingIOError:
+                self.dropped += 1  # that receiver's queue is full: it loses this frame
+            except (ConnectionRefusedError, FileNotFoundError):
+                gone.append(peer)  # a participant that left without removing its file
+        if gone:
+            self._peers = [p for p in self._peers if p not in gone]
+        if self.receive_own_messages:
+            self._own.append(self._decode(datagram, time.time(), is_rx=False))
+
+    def _recv_internal(self, timeout: float | None):
+        if self.receive_own_messages and self._own:
+            return self._own.pop(0), False
+        try:
+            datagram = self.socket.recv(FD.size)
+        except BlockingIOError:
+            if timeout is not None and timeout <= 0:
+                return None, False
+            readable, _, _ = select.select([self.socket], [], [], timeout)
+            if not readable:
+                return None, False
+            try:
+                datagram = self.socket.recv(FD.size)
+            except BlockingIOError:
+                return None, False
+        return self._decode(datagram, time.time()), False
+
+    def _decode(self, datagram: bytes, stamp: float, is_rx: bool = True) -> can.Message:
+        if len(datagram) == FD.size:
+            frame_id, length, flags, data = FD.unpack(datagram)
+            fd, brs, esi = True, bool(flags & CANFD_BRS), bool(flags & CANFD_ESI)
+        elif len(datagram) == CLASSIC.size:
+            frame_id, length, data = CLASSIC.unpack(datagram)
+            fd = brs = esi = False
+        else:
+            raise can.CanOperationError(
+                f"{self.channel_info}: datagram of {len(datagram)} bytes; expected "
+                f"{CLASSIC.size} (can_frame) or {FD.size} (canfd_frame)")
+        remote = bool(frame_id & CAN_RTR_FLAG)
+        return can.Message(
+            timestamp=stamp, arbitration_id=frame_id & 0x1FFFFFFF,
+            is_extended_id=bool(frame_id & CAN_EFF_FLAG), is_remote_frame=remote,
+            is_error_frame=bool(frame_id & CAN_ERR_FLAG), is_fd=fd, bitrate_switch=brs,
+            error_state_indicator=esi, dlc=length,
+            data=None if remote else data[:length], channel=str(self.directory), is_rx=is_rx)
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self.socket.close()
+        try:
+            self.path.unlink()
+        except FileNotFoundError:
+            pass
+
+    @staticmethod
+    def _detect_available_configs():
+        return []
+

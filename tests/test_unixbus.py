@@ -1,0 +1,77 @@
+"""slipd's unix-datagram CAN bus (python-can plugin ``slipd_unix``), used by the latency
+benchmark to feed the daemon from another process on machines without vcan."""
+
+from __future__ import annotations
+
+import os
+
+import can
+import pytest
+
+from slipd.daemon.unixbus import UnixDatagramBus
+
+
+@pytest.fixture
+def bus_dir(tmp_path):
+    return str(tmp_path / "bus")
+
+
+def test_every_participant_sees_the_others_frames(bus_dir):
+    a, b, c = (can.Bus(interface="slipd_unix", channel=bus_dir) for _ in range(3))
+    try:
+        assert isinstance(a, UnixDatagramBus)
+        sent = [
+            can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False),
+            can.Message(arbitration_id=0x1ABCDEF0, data=bytes(range(8))),
+            can.Message(arbitration_id=0x7FF, is_remote_frame=True, dlc=4, is_extended_id=False),
+            can.Message(arbitration_id=0x100, data=bytes(range(64)), is_fd=True,
+                        bitrate_switch=True, is_extended_id=False),
+        ]
+        for message in sent:
+            a.send(message)
+        for receiver in (b, c):
+            got = [receiver.recv(1.0) for _ in sent]
+            for message, received in zip(sent, got, strict=True):
+                assert received is not None
+                assert received.equals(message, timestamp_delta=None, check_channel=False,
+                                       check_direction=False)
+            assert receiver.recv(0.0) is None
+        assert a.recv(0.0) is None  # not its own frames
+    finally:
+        for bus in (a, b, c):
+            bus.shutdown()
+    assert os.listdir(bus_dir) == []  # each participant removes its socket file
+
+
+def test_filters_timeout_and_a_participant_that_vanished(bus_dir):
+    sender = can.Bus(interface="slipd_unix", channel=bus_dir)
+    receiver = can.Bus(interface="slipd_unix", channel=bus_dir,
+                       can_filters=[{"can_id": 0x100, "can_mask": 0x7FF, "extended": False}])
+    crashed = can.Bus(interface="slipd_unix", channel=bus_dir)
+    crashed.socket.close()  # died without cleaning up: its socket file stays behind
+    try:
+        sender.send(can.Message(arbitration_id=0x200, data=b"\x00", is_extended_id=False))
+        sender.send(can.Message(arbitration_id=0x100, data=b"\x01", is_extended_id=False))
+        received = receiver.recv(1.0)
+        assert received.arbitration_id == 0x100
+        assert receiver.recv(0.05) is None
+    finally:
+        sender.shutdown()
+        receiver.shutdown()
+
+
+def test_a_full_receiver_loses_frames_and_the_sender_counts_them(bus_dir):
+    sender = can.Bus(interface="slipd_unix", channel=bus_dir)
+    receiver = can.Bus(interface="slipd_unix", channel=bus_dir)
+    try:
+        total = 5000
+        for k in range(total):
+            sender.send(can.Message(arbitration_id=k & 0x7FF, data=b"\x00", is_extended_id=False))
+        received = 0
+        while receiver.recv(0.0) is not None:
+            received += 1
+        assert sender.dropped > 0
+        assert received + sender.dropped == total
+    finally:
+        sender.shutdown()
+        receiver.shutdown()
