@@ -20,6 +20,7 @@ import numba
 import numpy as np
 
 from slipd.channels import In
+from slipd.sim.vehicle_data import DEFAULT_IMU_POSITION, DEFAULT_STEER_RATIO
 from slipd.sim.plant import (
     OMEGA_FL,
     OMEGA_RR,
@@ -115,9 +116,10 @@ class SensorConfig:
     latency_base: float = 0.0008
     latency_spacing: float = 0.0004
     latency_jitter: float = 0.0001
-    # IMU position relative to the CoG and steering ratio (from the vehicle profile).
-    imu_position: tuple[float, float, float] = (0.25, 0.0, -0.25)
-    steer_ratio: float = 15.7
+    # IMU position relative to the CoG and steering ratio: simulate() sets them from the
+    # vehicle profile; these defaults are the same constants it falls back to (one source).
+    imu_position: tuple[float, float, float] = DEFAULT_IMU_POSITION
+    steer_ratio: float = DEFAULT_STEER_RATIO
     extra: dict = field(default_factory=dict)
 
 
