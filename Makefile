@@ -29,9 +29,10 @@ lint: setup
 	$(BIN)/ruff check .
 
 bench: setup
-	$(BIN)/python benchmarks/codec.py
-	$(BIN)/python benchmarks/replay.py
-	$(BIN)/python benchmarks/estimators.py
+	$(BIN)/python -m benchmarks.codec
+	$(BIN)/python -m benchmarks.replay
+	$(BIN)/python -m benchmarks.estimators
+	$(BIN)/python -m benchmarks.daemon_latency
 
 clean:
 	rm -rf $(VENV) .numba_cache .pytest_cache .ruff_cache

@@ -4,7 +4,7 @@ Frames: every input message of the default profile at its rate, encoded with val
 and CRCs (what the car's bus carries). Both paths decode the same frames; the codec also
 checks CRC/counter and latches, which cantools does not.
 
-    .venv/bin/python benchmarks/codec.py [--seconds-of-bus 600]
+    .venv/bin/python -m benchmarks.codec [--seconds-of-bus 600]
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ fast path: slipd.replay (numba candump reader -> codec latch_ticks -> run_ticks)
 library path: python-can LogReader + cantools decode_message + the same estimator's step
 called per tick from Python (measured on the first minutes, reported per frame).
 
-    .venv/bin/python benchmarks/replay.py [--hours 1] [--estimator kinematic_heuristic]
+    .venv/bin/python -m benchmarks.replay [--hours 1] [--estimator kinematic_heuristic]
 """
 
 from __future__ import annotations
