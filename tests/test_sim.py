@@ -81,6 +81,24 @@ def test_left_turn_signs_iso8855():
     assert slow.x[-1, YAW_RATE] > 0.0 and slow.x[-1, VY] > 0.0
 
 
+def test_wheel_speeds_carry_iso_left_and_right():
+    """In a left turn the left (inner) wheels are the slower ones, by r * track / 2 (the MB
+    model's own "left" wheels sit at ISO y = -T/2; the sensor and truth labels must not)."""
+    p = vehicle_parameters(2)
+    fast = _circle(20.0, 0.02)
+    from slipd.sim.sensors import truth
+
+    tr = truth(fast, p)
+    r, vx = tr["yaw_rate"][-1], tr["vx"][-1]
+    rear_left, rear_right = tr["wheel_speed_rl"][-1], tr["wheel_speed_rr"][-1]
+    assert tr["wheel_speed_fl"][-1] < tr["wheel_speed_fr"][-1] and rear_left < rear_right
+    # free-rolling rear wheels: vx -/+ r T_r / 2 up to the small longitudinal slip
+    assert abs(rear_left - (vx - r * p.T_r / 2)) < 0.02 * vx
+    assert abs(rear_right - (vx + r * p.T_r / 2)) < 0.02 * vx
+    channels = sensor_channels(fast, p, SensorConfig(), np.random.default_rng(0))
+    assert channels[In.WHEEL_SPEED_RL][-1] < channels[In.WHEEL_SPEED_RR][-1]
+
+
 def test_steady_state_matches_linear_single_track_at_small_slip():
     """Yaw rate within 3 % of r = v delta / (L + K_us v^2); sideslip within 0.1 deg of the
     linear formula (the multi-body car's camber and compliance terms shift it slightly)."""

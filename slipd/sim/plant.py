@@ -48,6 +48,13 @@ POS_X, POS_Y, STEER, VX, YAW, YAW_RATE, ROLL, ROLL_RATE, PITCH, PITCH_RATE, VY =
 Z_S, VZ_S = 11, 12
 OMEGA_FL, OMEGA_FR, OMEGA_RL, OMEGA_RR = 23, 24, 25, 26
 
+#: Plant wheel-speed states in ISO 8855 wheel order (FL, FR, RL, RR). The MB model's "left"
+#: wheels sit at y = -T/2 of an ISO frame whose yaw rate is positive to the left: its own
+#: kinematics give u_w_lf = vx + T_f/2 * r (vehicle_dynamics_mb.py), the speed of the right-hand
+#: wheel; measured, in a left turn its "FL" wheel turns faster than "FR". The plant stays as
+#: published (its forces are consistent with its geometry); only the labels are swapped.
+ISO_WHEEL_STATES = (OMEGA_FR, OMEGA_FL, OMEGA_RR, OMEGA_RL)
+
 #: Model roll (x[6]) -> ISO 8855 roll (positive right side down). Measured: in a left turn the
 #: body leans to the right (outward) and x[6] comes out negative, so the sign flips.
 ROLL_SIGN = -1.0

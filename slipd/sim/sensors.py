@@ -20,10 +20,8 @@ import numba
 import numpy as np
 
 from slipd.channels import In
-from slipd.sim.vehicle_data import DEFAULT_IMU_POSITION, DEFAULT_STEER_RATIO
 from slipd.sim.plant import (
-    OMEGA_FL,
-    OMEGA_RR,
+    ISO_WHEEL_STATES,
     PITCH,
     PITCH_RATE,
     PITCH_SIGN,
@@ -41,6 +39,7 @@ from slipd.sim.plant import (
     G,
     PlantOutput,
 )
+from slipd.sim.vehicle_data import DEFAULT_IMU_POSITION, DEFAULT_STEER_RATIO
 
 DEG = math.pi / 180.0
 
@@ -182,7 +181,7 @@ def truth(out: PlantOutput, p) -> dict[str, np.ndarray]:
     x, dx = out.x, out.dx
     vx, vy, r = x[:, VX], x[:, VY], x[:, YAW_RATE]
     speed = np.hypot(vx, vy)
-    wheels = x[:, OMEGA_FL : OMEGA_RR + 1] * p.R_w
+    wheels = x[:, list(ISO_WHEEL_STATES)] * p.R_w
     return {
         "t": out.t,
         "beta": np.arctan2(vy, np.maximum(vx, 1e-9)) * (speed > 1e-3),
@@ -306,7 +305,7 @@ def sensor_channels(
     for i, channel in enumerate(
         (In.WHEEL_SPEED_FL, In.WHEEL_SPEED_FR, In.WHEEL_SPEED_RL, In.WHEEL_SPEED_RR)
     ):
-        true = out.x[:, OMEGA_FL + i] * p.R_w * (1.0 + radius_error[i])
+        true = out.x[:, ISO_WHEEL_STATES[i]] * p.R_w * (1.0 + radius_error[i])
         noise = rng.normal(0.0, 1.0, n) * (cfg.wheel_noise_abs + cfg.wheel_noise_rel * true)
         meas = np.abs(true + noise)
         ch[channel] = np.where(true < cfg.wheel_min_speed, 0.0, meas)
