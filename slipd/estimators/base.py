@@ -40,6 +40,8 @@ REGISTRY: dict[str, str] = {
     "dk_ekf": "slipd.estimators.dk_ekf",
     "d_ekf": "slipd.estimators.d_ekf",
     "k_kf": "slipd.estimators.k_kf",
+    "hybrid_friction": "slipd.estimators.hybrid_friction",
+    "hybrid_friction_nocls": "slipd.estimators.hybrid_friction_nocls",
 }
 
 
