@@ -40,6 +40,11 @@ REGISTRY: dict[str, str] = {
     "dk_ekf": "slipd.estimators.dk_ekf",
     "d_ekf": "slipd.estimators.d_ekf",
     "k_kf": "slipd.estimators.k_kf",
+    "gnss_magnetometer": "slipd.estimators.gnss_magnetometer",
+    "pseudo_fusion": "slipd.estimators.pseudo_fusion",
+    "pseudo_fusion_kbe": "slipd.estimators.pseudo_fusion_kbe",
+    "pseudo_fusion_dbe": "slipd.estimators.pseudo_fusion_dbe",
+    "pseudo_fusion_wbe": "slipd.estimators.pseudo_fusion_wbe",
     "hybrid_friction": "slipd.estimators.hybrid_friction",
     "hybrid_friction_nocls": "slipd.estimators.hybrid_friction_nocls",
 }
