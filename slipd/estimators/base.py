@@ -47,6 +47,7 @@ REGISTRY: dict[str, str] = {
     "pseudo_fusion_wbe": "slipd.estimators.pseudo_fusion_wbe",
     "hybrid_friction": "slipd.estimators.hybrid_friction",
     "hybrid_friction_nocls": "slipd.estimators.hybrid_friction_nocls",
+    "ensemble": "slipd.estimators.ensemble",
 }
 
 

@@ -1,0 +1,615 @@
+"""``ensemble``: every seed method each tick, fused by N-method linear minimum variance.
+
+Generalises the matrix-weighted linear minimum-variance fusion of Chen et al. 2018 (Sec. 3.2,
+eq. 26-39; shared/papers/chen2018-pseudo-multisensor-fusion.md) from its three pseudo-sensors to
+the N = 7 member methods below, for the scalar sideslip angle.
+
+Members (``MEMBERS``, fixed order): kinematic_heuristic, dk_ekf, d_ekf, k_kf, hybrid_friction,
+pseudo_fusion, gnss_magnetometer. Not members: ``zero`` (a floor, not an estimate) and the thin
+variants (``*_nocls``, ``pseudo_fusion_kbe/dbe/wbe``), which rerun a member's kernels.
+
+Fusion (one scalar per member, beta_i with error e_i = beta_i - beta)
+    eq. 27  beta_0 = sum_i w_i beta_i with sum_i w_i = 1 (unbiasedness, eq. 26)
+    eq. 30  J = w' P w -> min, P_ij = E[e_i e_j]
+    eq. 38  w = P^-1 1 / (1' P^-1 1),  fused variance sigma_0^2 = 1 / (1' P^-1 1)
+
+How P is obtained online, without ground truth (slipd's choice):
+
+* pairwise difference moments, exponentially forgotten with time constant tau
+  (``time_constant``, a = dt / tau), updated on every tick both members are usable:
+      D_ij <- (1 - a) D_ij + a (beta_i - beta_j)^2,   M_ij <- (1 - a) M_ij + a
+  and read bias-corrected, D_ij / M_ij (M_ij is the weight the started average has collected,
+  so the first samples are not shrunk towards the zero start). D_ij is a raw second moment, not
+  a variance: a persistent bias between two methods counts, as it does in the RMS.
+  For any error statistics D_ij = P_ii + P_jj - 2 P_ij.
+* N-cornered hat (Gray & Allan 1974; the least-squares form of the three-cornered hat that
+  ``pseudo_fusion`` offers as its mode 1) with a family term: the N (N - 1) / 2 moments cannot
+  identify the N (N + 1) / 2 elements of P, so P is given a structure with fewer unknowns. The
+  errors of members that share kernels (``FAMILY``: dk_ekf, d_ekf and k_kf are all built from
+  the righetti_lenzo dynamic EKF and kinematic KF) are modelled as a common part plus an own
+  part, all other errors as independent:
+      e_i = c_f(i) + u_i,  P_ii = C_f + U_i,  P_ij = C_f (same family f),  P_ij = 0 (otherwise)
+      D_ij = U_i + U_j (same family),  D_ij = U_i + C_f(i) + U_j + C_f(j) (otherwise)
+  (C of a family of one is part of its U.) The unknowns theta = [U_1..U_n, C_f..] are fitted to
+  the moments of the n fused members by weighted least squares,
+      min_theta sum_{i<j} c_ij (a_ij' theta - D_ij)^2,   c_ij = 1 / (D_ij + sigma_floor^2)^2,
+  a_ij the 0/1 row of the model above, i.e. the normal equations (sum c_ij a_ij a_ij') theta =
+  sum c_ij a_ij D_ij, solved by Gaussian elimination on the diagonally scaled SPD system.
+  C_f is an unknown only when its family has >= 2 fused members and >= 2 fused members are
+  outside it (otherwise it is not identifiable and taken as 0); the fit needs n >= 3.
+  Negative U_i or C_f are set to 0. The weights c_ij make the fit one in relative errors: a
+  sample second moment has a standard deviation proportional to its value (chi-square), so
+  without them the degree-squared moments of a member that is far off dominate the fit and the
+  small U_i of the good members come out as differences of large numbers (measured on the
+  simulator: negative for one good member, which then took 90 % of the weight). Without
+  families, equal c_ij and n = 3 this is T_1 = (D_12 + D_13 - D_23) / 2. Why the family term
+  (measured on the simulator): dk_ekf and d_ekf differ by 0.3-0.8 deg where both are 1-4 deg
+  off; treated as independent they look like the two best members and out-vote the others.
+  With n = 2 the split is not observable and D_12 is shared in proportion to the members' own
+  sigma_beta^2; with n = 1 the member is taken as it is.
+* combination with the member's own sigma_beta (its filter covariance): a filter's covariance
+  knows its noise model but not its model error, so it is a lower bound on the error variance:
+      P_ii = max(U_i + C_f(i), sigma_i^2) + sigma_floor^2
+  ``sigma_floor`` keeps P positive definite (a zero U_i, which the fit gives when errors are
+  correlated beyond the model, cannot take all the weight) and bounds the weight ratio.
+* eq. 38 with this P: x = P^-1 1 (Gaussian elimination, P is SPD), w = x / (1' x). Within a
+  family a negative weight is the minimum-variance answer (the worse of two correlated members
+  used to cancel the common error); it is clipped, w_i = max(x_i, 0) / sum_j max(x_j, 0), so all
+  weights stay in [0, 1], and the fused variance is w' P w. A member whose differences to the
+  others grow (it goes bad) loses its weight within about tau.
+
+Limitation (what the differences cannot show): an error common to members of different
+families (e.g. every method that assumes the nominal friction, on snow) does not appear in
+their differences, so such a group still looks more precise than it is and an isolated member
+that is right looks worse; only the common part of declared families is modelled. The full P
+of Chen's eq. 30 is not identifiable from difference moments alone; the structure above is the
+price of a truth-free P.
+
+Usable member (else weight 0 this tick, and its moments are not updated): status without
+UNAVAILABLE, INPUT_TIMEOUT, NOT_CONVERGED or RESET; none of its own required channels (its
+``REQUIRED``, default ``CORE_CHANNELS``) invalid in ``u``; finite beta with |beta| < 90 deg and
+finite vx; and usable for the last ``entry_time`` seconds without a break (its moments need
+that long to say anything). While no member is fused (start-up: none has been usable for
+``entry_time`` yet), the members usable this tick, else all with finite outputs, are weighted
+by their own sigma_beta alone, w_i ~ 1 / (sigma_i^2 + sigma_floor^2), with NOT_CONVERGED.
+
+Outputs: beta_0 and sigma_beta = sigma_0 as above; vx = sum w_i vx_i and vy = vx tan(beta_0) (so
+that beta = atan2(vy, vx) holds for the fused values); beta rate and roll the same weighted mean
+(over the members with a finite value, renormalised); mu the weighted mean over the members that
+estimate it (NaN when none does); friction class that of the highest-weighted member reporting
+one; DEGRADED when a used member says DEGRADED. Input supervision and VALID are added by
+``slipd.estimators.supervision`` as for every method.
+
+Params: the fusion's own (``FUSION_PARAMS``) first, then every member's params vector under
+``<member>__<field>`` names (``dk_ekf__q_vy_dyn``), defaults from each member's ``DEFAULTS``, so
+``overrides`` can tune a member inside the ensemble. The fusion defaults are slipd's (no paper
+gives them): tau = 2 s as ``pseudo_fusion``'s ``fusion_time_constant``, entry time 1 s,
+sigma_floor 0.05 deg (ten steps of the output frame's beta, below every member's accuracy).
+
+State layout: the fusion block (``F`` offsets below: member state and params bounds, usable
+streaks, weights, variances P_ii, family terms C_f, moments, member outputs, scratch), then each
+member's own state vector. Member state and params bounds are written by ``init`` into the
+state rather than frozen into the kernel as constants, so that a member that grows a parameter
+cannot leave a cached kernel reading the wrong slots. Each member's ``step`` is called on
+slices of the ensemble's state and params (views, no allocation). The compiled members are
+linked into this module's cached kernel: after a change of a member module, delete this
+module's files in the numba cache.
+"""
+
+from __future__ import annotations
+
+import enum
+import importlib
+import math
+from types import ModuleType
+
+import numba as nb
+import numpy as np
+
+from slipd.channels import (
+    CORE_CHANNELS,
+    N_IN,
+    N_OUT,
+    ST_DEGRADED,
+    ST_INPUT_TIMEOUT,
+    ST_NOT_CONVERGED,
+    ST_RESET,
+    ST_UNAVAILABLE,
+    VALID,
+    Out,
+)
+from slipd.estimators import (
+    d_ekf,
+    dk_ekf,
+    gnss_magnetometer,
+    hybrid_friction,
+    k_kf,
+    kinematic_heuristic,
+    pseudo_fusion,
+)
+
+#: The member methods, in the order of their slots (and of the calls in ``step``).
+MEMBERS = (
+    "kinematic_heuristic",
+    "dk_ekf",
+    "d_ekf",
+    "k_kf",
+    "hybrid_friction",
+    "pseudo_fusion",
+    "gnss_magnetometer",
+)
+N_MEMBERS = len(MEMBERS)
+#: Family of each member: members of one family share kernels (dk_ekf, d_ekf and k_kf are built
+#: from the same righetti_lenzo dynamic EKF and kinematic KF), so their errors share a part the
+#: fit models as a common term C_f (module docstring). The others are families of one.
+FAMILY = (0, 1, 1, 1, 2, 3, 4)
+#: A member's status bits that take it out of the fusion this tick.
+EXCLUDING = ST_UNAVAILABLE | ST_INPUT_TIMEOUT | ST_NOT_CONVERGED | ST_RESET
+
+
+class FUSION_PARAMS(enum.IntEnum):
+    TIME_CONSTANT = 0  # s, forgetting of the difference moments D_ij (slipd)
+    ENTRY_TIME = 1  # s, a member is fused after this long usable without a break (slipd)
+    SIGMA_FLOOR = 2  # rad, added in quadrature to every member's error sigma (slipd)
+
+
+FUSION_DEFAULTS = {
+    "time_constant": 2.0,
+    "entry_time": 1.0,
+    "sigma_floor": math.radians(0.05),
+}
+
+
+def _member_module(name: str) -> ModuleType:
+    return importlib.import_module(f"slipd.estimators.{name}")
+
+
+def _member_fields() -> list[tuple[str, float]]:
+    """(PARAMS name, default) of every member param, prefixed with the member's name."""
+    from slipd.estimators.base import make_params
+
+    fields = []
+    for name in MEMBERS:
+        module = _member_module(name)
+        values = make_params(module)
+        for field in module.PARAMS:
+            fields.append((f"{name.upper()}__{field.name}", float(values[int(field)])))
+    return fields
+
+
+_FIELDS = _member_fields()
+_N_FUSION = len(FUSION_PARAMS)
+PARAMS = enum.IntEnum(
+    "PARAMS",
+    [(f.name, int(f)) for f in FUSION_PARAMS]
+    + [(name, _N_FUSION + k) for k, (name, _) in enumerate(_FIELDS)],
+)
+PARAMS.__doc__ = "Fusion params, then each member's params as <MEMBER>__<FIELD>."
+DEFAULTS = {**FUSION_DEFAULTS, **{name.lower(): value for name, value in _FIELDS}}
+
+
+class F(enum.IntEnum):
+    """Offsets of the fusion block in the state vector (each a block of the given length)."""
+
+    STATE_BOUNDS = 0  # N + 1: start of member m's state; [N] the end of the last
+    PARAMS_BOUNDS = STATE_BOUNDS + N_MEMBERS + 1  # N + 1: the same for the params vector
+    USABLE = PARAMS_BOUNDS + N_MEMBERS + 1  # N: 1.0 when the member is usable this tick
+    USABLE_TICKS = USABLE + N_MEMBERS  # N: consecutive usable ticks
+    FUSED = USABLE_TICKS + N_MEMBERS  # N: 1.0 when the member enters this tick's fusion
+    WEIGHT = FUSED + N_MEMBERS  # N: the weights w_i of the last tick
+    VARIANCE = WEIGHT + N_MEMBERS  # N: P_ii of the last tick, rad^2 (NaN: not fused)
+    MOMENT = VARIANCE + N_MEMBERS  # N x N: D_ij (row-major, symmetric, diagonal unused)
+    MASS = MOMENT + N_MEMBERS * N_MEMBERS  # N x N: M_ij, the EWMA weight collected
+    REQUIRED = MASS + N_MEMBERS * N_MEMBERS  # N x N_IN: 1.0 where member m requires channel
+    MEMBER_OUT = REQUIRED + N_MEMBERS * N_IN  # N x N_OUT: the members' outputs of this tick
+    INDEX = MEMBER_OUT + N_MEMBERS * N_OUT  # N: scratch, member of each packed index
+    UNKNOWN = INDEX + N_MEMBERS  # N: scratch, unknown index of family f's C_f (-1: none)
+    SYSTEM = UNKNOWN + N_MEMBERS  # 2N x 2N: scratch, normal equations, then P
+    RHS = SYSTEM + 4 * N_MEMBERS * N_MEMBERS  # 2N: scratch, right-hand side, then the solution
+    SCALE = RHS + 2 * N_MEMBERS  # 2N: scratch, the diagonal scaling
+    COMMON = SCALE + 2 * N_MEMBERS  # N: C_f of family f of the last tick, rad^2
+    END = COMMON + N_MEMBERS
+
+
+def member_params(params: np.ndarray, name: str) -> np.ndarray:
+    """The slice of the ensemble's params vector that is member ``name``'s params vector."""
+    start = _N_FUSION
+    for member in MEMBERS:
+        length = len(_member_module(member).PARAMS)
+        if member == name:
+            return params[start : start + length]
+        start += length
+    raise KeyError(name)
+
+
+def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
+    """The fusion block (bounds, empty moments) followed by each member's ``init`` state."""
+    member_states = []
+    params_bounds = [_N_FUSION]
+    for name in MEMBERS:
+        module = _member_module(name)
+        own = member_params(params, name)
+        member_states.append(np.asarray(module.init(own.copy(), vehicle), dtype=np.float64))
+        params_bounds.append(params_bounds[-1] + len(own))
+    if params_bounds[-1] != len(params):
+        raise ValueError(f"ensemble: params vector has {len(params)} elements, "
+                         f"the members need {params_bounds[-1]}")
+    state_bounds = [int(F.END)]
+    for member_state in member_states:
+        state_bounds.append(state_bounds[-1] + len(member_state))
+    state = np.zeros(state_bounds[-1], dtype=np.float64)
+    state[F.STATE_BOUNDS : F.STATE_BOUNDS + N_MEMBERS + 1] = state_bounds
+    state[F.PARAMS_BOUNDS : F.PARAMS_BOUNDS + N_MEMBERS + 1] = params_bounds
+    state[F.VARIANCE : F.VARIANCE + N_MEMBERS] = np.nan
+    for m, name in enumerate(MEMBERS):
+        for channel in getattr(_member_module(name), "REQUIRED", CORE_CHANNELS):
+            state[F.REQUIRED + m * N_IN + int(channel)] = 1.0
+        state[state_bounds[m] : state_bounds[m + 1]] = member_states[m]
+    return state
+
+
+@nb.njit(cache=True)
+def _member_state(state, m):
+    return state[int(state[F.STATE_BOUNDS + m]) : int(state[F.STATE_BOUNDS + m + 1])]
+
+
+@nb.njit(cache=True)
+def _member_params(state, params, m):
+    return params[int(state[F.PARAMS_BOUNDS + m]) : int(state[F.PARAMS_BOUNDS + m + 1])]
+
+
+@nb.njit(cache=True)
+def _member_out(state, m):
+    start = F.MEMBER_OUT + m * N_OUT
+    return state[start : start + N_OUT]
+
+
+@nb.njit(cache=True)
+def run_members(state, u, params, vehicle, dt):
+    """Each member's ``step`` on its slices (static calls: numba caches no function arguments)."""
+    kinematic_heuristic.step(_member_state(state, 0), u, _member_params(state, params, 0),
+                             vehicle, dt, _member_out(state, 0))  # fmt: skip
+    dk_ekf.step(_member_state(state, 1), u, _member_params(state, params, 1),
+                vehicle, dt, _member_out(state, 1))  # fmt: skip
+    d_ekf.step(_member_state(state, 2), u, _member_params(state, params, 2),
+               vehicle, dt, _member_out(state, 2))  # fmt: skip
+    k_kf.step(_member_state(state, 3), u, _member_params(state, params, 3),
+              vehicle, dt, _member_out(state, 3))  # fmt: skip
+    hybrid_friction.step(_member_state(state, 4), u, _member_params(state, params, 4),
+                         vehicle, dt, _member_out(state, 4))  # fmt: skip
+    pseudo_fusion.step(_member_state(state, 5), u, _member_params(state, params, 5),
+                       vehicle, dt, _member_out(state, 5))  # fmt: skip
+    gnss_magnetometer.step(_member_state(state, 6), u, _member_params(state, params, 6),
+                           vehicle, dt, _member_out(state, 6))  # fmt: skip
+
+
+@nb.njit(cache=True)
+def member_usable(state, u, m):
+    """True when member m's output of this tick may enter the fusion (see module docstring)."""
+    row = F.MEMBER_OUT + m * N_OUT
+    status = int(state[row + Out.STATUS])
+    if status & EXCLUDING:
+        return False
+    beta = state[row + Out.BETA]
+    if not (math.isfinite(beta) and abs(beta) < 0.5 * math.pi):
+        return False
+    if not math.isfinite(state[row + Out.VX]):
+        return False
+    required = F.REQUIRED + m * N_IN
+    for ch in range(N_IN):
+        if state[required + ch] > 0.5 and u[VALID + ch] < 0.5:
+            return False
+    return True
+
+
+@nb.njit(cache=True)
+def mark_usable(state, u, entry_ticks):
+    """Per member: USABLE = usable this tick (1/0), USABLE_TICKS its streak, FUSED = usable for
+    at least ``entry_ticks`` ticks (the member enters the fusion)."""
+    for m in range(N_MEMBERS):
+        if member_usable(state, u, m):
+            state[F.USABLE + m] = 1.0
+            state[F.USABLE_TICKS + m] += 1.0
+        else:
+            state[F.USABLE + m] = 0.0
+            state[F.USABLE_TICKS + m] = 0.0
+        fused = state[F.USABLE + m] > 0.5 and state[F.USABLE_TICKS + m] >= entry_ticks
+        state[F.FUSED + m] = 1.0 if fused else 0.0
+
+
+@nb.njit(cache=True)
+def update_moments(state, decay):
+    """D_ij, M_ij <- EWMA of (beta_i - beta_j)^2 and of 1 over the pairs usable this tick."""
+    for i in range(N_MEMBERS):
+        if state[F.USABLE + i] < 0.5:
+            continue
+        beta_i = state[F.MEMBER_OUT + i * N_OUT + Out.BETA]
+        for j in range(i + 1, N_MEMBERS):
+            if state[F.USABLE + j] < 0.5:
+                continue
+            diff = beta_i - state[F.MEMBER_OUT + j * N_OUT + Out.BETA]
+            ij = i * N_MEMBERS + j
+            d = (1.0 - decay) * state[F.MOMENT + ij] + decay * diff * diff
+            mass = (1.0 - decay) * state[F.MASS + ij] + decay
+            state[F.MOMENT + ij] = d
+            state[F.MOMENT + j * N_MEMBERS + i] = d
+            state[F.MASS + ij] = mass
+            state[F.MASS + j * N_MEMBERS + i] = mass
+
+
+@nb.njit(cache=True)
+def _moment(state, i, j):
+    """The bias-corrected moment D_ij / M_ij."""
+    ij = i * N_MEMBERS + j
+    mass = state[F.MASS + ij]
+    return state[F.MOMENT + ij] / mass if mass > 0.0 else 0.0
+
+
+@nb.njit(cache=True)
+def _own_variance(state, m):
+    sigma = state[F.MEMBER_OUT + m * N_OUT + Out.SIGMA_BETA]
+    return sigma * sigma if math.isfinite(sigma) and sigma > 0.0 else 0.0
+
+
+@nb.njit(cache=True)
+def _fused(state, m):
+    return state[F.FUSED + m] > 0.5
+
+
+#: Row stride of the scratch matrix at F.SYSTEM.
+STRIDE = 2 * N_MEMBERS
+
+
+@nb.njit(cache=True)
+def _solve_spd(state, n):
+    """Solve A x = b in place for the SPD n x n system A at ``state[F.SYSTEM:]`` (row stride
+    STRIDE) and b at ``state[F.RHS:]``, x replacing b: the system is first scaled to a unit
+    diagonal, then Gaussian elimination without pivoting (valid for SPD). False if a pivot is
+    not positive (A singular or not positive definite)."""
+    a0 = F.SYSTEM
+    b0 = F.RHS
+    for p in range(n):
+        diagonal = state[a0 + p * STRIDE + p]
+        if not diagonal > 0.0:
+            return False
+        state[F.SCALE + p] = 1.0 / math.sqrt(diagonal)
+    for p in range(n):
+        for q in range(n):
+            state[a0 + p * STRIDE + q] *= state[F.SCALE + p] * state[F.SCALE + q]
+        state[b0 + p] *= state[F.SCALE + p]
+    for k in range(n):
+        pivot = state[a0 + k * STRIDE + k]
+        if not pivot > 1e-12:
+            return False
+        for i in range(k + 1, n):
+            factor = state[a0 + i * STRIDE + k] / pivot
+            if factor != 0.0:
+                for j in range(k, n):
+                    state[a0 + i * STRIDE + j] -= factor * state[a0 + k * STRIDE + j]
+                state[b0 + i] -= factor * state[b0 + k]
+    for k in range(n - 1, -1, -1):
+        acc = state[b0 + k]
+        for j in range(k + 1, n):
+            acc -= state[a0 + k * STRIDE + j] * state[b0 + j]
+        state[b0 + k] = acc / state[a0 + k * STRIDE + k]
+    for p in range(n):
+        state[b0 + p] *= state[F.SCALE + p]
+    return True
+
+
+@nb.njit(cache=True)
+def _family_count(state, n, family):
+    count = 0
+    for p in range(n):
+        if FAMILY[int(state[F.INDEX + p])] == family:
+            count += 1
+    return count
+
+
+@nb.njit(cache=True)
+def _add_pair(state, p, q, fp, fq, same, weight, value):
+    """Add one pair's row a (U_p + U_q [+ C_fp + C_fq across families]) to the normal
+    equations: A += weight a a', b += weight a value."""
+    k0 = p
+    k1 = q
+    k2 = -1
+    k3 = -1
+    if not same:
+        k2 = int(state[F.UNKNOWN + fp])
+        k3 = int(state[F.UNKNOWN + fq])
+    for a in (k0, k1, k2, k3):
+        if a < 0:
+            continue
+        state[F.RHS + a] += weight * value
+        for b in (k0, k1, k2, k3):
+            if b >= 0:
+                state[F.SYSTEM + a * STRIDE + b] += weight
+
+
+@nb.njit(cache=True)
+def error_covariance(state, floor):
+    """P of the fused members (module docstring) and the weights of eq. 38 into
+    ``state[F.WEIGHT:]``; P_ii into ``state[F.VARIANCE:]`` (NaN for members not fused), C_f
+    into ``state[F.COMMON:]``. Returns (number fused, fused variance w' P w)."""
+    n = 0
+    for i in range(N_MEMBERS):
+        state[F.VARIANCE + i] = math.nan
+        state[F.WEIGHT + i] = 0.0
+        state[F.COMMON + i] = 0.0
+        state[F.UNKNOWN + i] = -1.0
+        if _fused(state, i):
+            state[F.INDEX + n] = i
+            n += 1
+    if n == 0:
+        return 0, math.nan
+    # unknowns: U_p for p < n, then C_f of each family with >= 2 fused members and >= 2 fused
+    # members outside it (else C_f is not identifiable and taken as 0)
+    m = n
+    for family in range(N_MEMBERS):
+        inside = _family_count(state, n, family)
+        if inside >= 2 and n - inside >= 2:
+            state[F.UNKNOWN + family] = m
+            m += 1
+    solved = False
+    if n >= 3:
+        for a in range(m):
+            state[F.RHS + a] = 0.0
+            for b in range(m):
+                state[F.SYSTEM + a * STRIDE + b] = 0.0
+        for p in range(n):
+            i = int(state[F.INDEX + p])
+            for q in range(p + 1, n):
+                j = int(state[F.INDEX + q])
+                d = _moment(state, i, j)
+                weight = 1.0 / ((d + floor) * (d + floor))
+                _add_pair(state, p, q, FAMILY[i], FAMILY[j], FAMILY[i] == FAMILY[j], weight, d)
+        solved = _solve_spd(state, m)
+        if solved:
+            for family in range(N_MEMBERS):
+                k = int(state[F.UNKNOWN + family])
+                if k >= 0:
+                    state[F.COMMON + family] = max(state[F.RHS + k], 0.0)
+    # diagonal: max(U_i + C_f, own sigma^2) + floor; same-family cross terms C_f
+    for p in range(n):
+        i = int(state[F.INDEX + p])
+        own = _own_variance(state, i)
+        if solved:
+            hat = max(state[F.RHS + p], 0.0) + state[F.COMMON + FAMILY[i]]
+        elif n == 2:
+            other = int(state[F.INDEX + 1 - p])
+            own_other = _own_variance(state, other)
+            share = own / (own + own_other) if own + own_other > 0.0 else 0.5
+            hat = share * _moment(state, i, other)
+        else:
+            hat = own
+        state[F.VARIANCE + i] = max(hat, own) + floor
+    # eq. 38: x = P^-1 1, w = x / (1' x); P rebuilt in the scratch matrix
+    for p in range(n):
+        i = int(state[F.INDEX + p])
+        state[F.RHS + p] = 1.0
+        for q in range(n):
+            j = int(state[F.INDEX + q])
+            if p == q:
+                value = state[F.VARIANCE + i]
+            elif FAMILY[i] == FAMILY[j]:
+                value = state[F.COMMON + FAMILY[i]]
+            else:
+                value = 0.0
+            state[F.SYSTEM + p * STRIDE + q] = value
+    if not _solve_spd(state, n):
+        for p in range(n):  # cannot happen for P = diag + family blocks; diagonal P then
+            state[F.RHS + p] = 1.0 / state[F.VARIANCE + int(state[F.INDEX + p])]
+    # negative weights (a member correlated with a better one) clipped: w >= 0, sum w = 1
+    total = 0.0
+    for p in range(n):
+        x = state[F.RHS + p]
+        total += x if x > 0.0 else 0.0
+    for p in range(n):
+        x = state[F.RHS + p]
+        state[F.WEIGHT + int(state[F.INDEX + p])] = x / total if x > 0.0 else 0.0
+    # fused variance w' P w
+    variance = 0.0
+    for p in range(n):
+        i = int(state[F.INDEX + p])
+        for q in range(n):
+            j = int(state[F.INDEX + q])
+            if p == q:
+                cov = state[F.VARIANCE + i]
+            elif FAMILY[i] == FAMILY[j]:
+                cov = state[F.COMMON + FAMILY[i]]
+            else:
+                cov = 0.0
+            variance += state[F.WEIGHT + i] * state[F.WEIGHT + j] * cov
+    return n, variance
+
+
+@nb.njit(cache=True)
+def _weighted_mean(state, channel):
+    """sum w_i y_i / sum w_i over the members with w_i > 0 and a finite y_i (NaN if none)."""
+    num = 0.0
+    den = 0.0
+    for m in range(N_MEMBERS):
+        w = state[F.WEIGHT + m]
+        value = state[F.MEMBER_OUT + m * N_OUT + channel]
+        if w > 0.0 and math.isfinite(value):
+            num += w * value
+            den += w
+    return num / den if den > 0.0 else math.nan
+
+
+@nb.njit(cache=True)
+def fuse(state, floor, out):
+    """Eq. 38-39 with the P of ``error_covariance``; writes the weights and ``out``."""
+    n, variance = error_covariance(state, floor)
+    status = 0
+    information = 0.0
+    if n > 0:
+        information = 1.0 / variance
+        for m in range(N_MEMBERS):
+            if state[F.WEIGHT + m] > 0.0:
+                status |= int(state[F.MEMBER_OUT + m * N_OUT + Out.STATUS]) & ST_DEGRADED
+    else:
+        # nobody fused yet (start-up, after a loss): the members usable this tick, else those
+        # with finite outputs, weighted by their own sigma_beta alone; flagged not converged
+        any_usable = False
+        for m in range(N_MEMBERS):
+            any_usable = any_usable or state[F.USABLE + m] > 0.5
+        total = 0.0
+        for m in range(N_MEMBERS):
+            row = F.MEMBER_OUT + m * N_OUT
+            ok = math.isfinite(state[row + Out.BETA]) and math.isfinite(state[row + Out.VX])
+            if any_usable:
+                ok = state[F.USABLE + m] > 0.5
+            w = 1.0 / (_own_variance(state, m) + floor) if ok else 0.0
+            state[F.WEIGHT + m] = w
+            total += w
+        for m in range(N_MEMBERS):
+            state[F.WEIGHT + m] = state[F.WEIGHT + m] / total if total > 0.0 else 0.0
+        status = ST_NOT_CONVERGED | (0 if total > 0.0 else ST_INPUT_TIMEOUT)
+    beta = _weighted_mean(state, Out.BETA)
+    vx = _weighted_mean(state, Out.VX)
+    if not (math.isfinite(beta) and math.isfinite(vx)):
+        beta = 0.0
+        vx = 0.0 if not math.isfinite(vx) else vx
+        status |= ST_NOT_CONVERGED
+    beta_rate = _weighted_mean(state, Out.BETA_RATE)
+    roll = _weighted_mean(state, Out.ROLL)
+    friction_class = 0.0
+    best = 0.0
+    for m in range(N_MEMBERS):
+        value = state[F.MEMBER_OUT + m * N_OUT + Out.FRICTION_CLASS]
+        if state[F.WEIGHT + m] > best and math.isfinite(value) and value > 0.0:
+            best = state[F.WEIGHT + m]
+            friction_class = value
+    out[Out.BETA] = beta
+    out[Out.BETA_RATE] = beta_rate if math.isfinite(beta_rate) else 0.0
+    out[Out.VX] = vx
+    out[Out.VY] = vx * math.tan(beta)
+    out[Out.MU] = _weighted_mean(state, Out.MU)
+    out[Out.SIGMA_BETA] = math.sqrt(1.0 / information) if information > 0.0 else math.nan
+    out[Out.ROLL] = roll if math.isfinite(roll) else 0.0
+    out[Out.FRICTION_CLASS] = friction_class
+    out[Out.STATUS] = float(status)
+
+
+@nb.njit(cache=True)
+def step(state, u, params, vehicle, dt, out):
+    """One tick: every member's step, then the N-member minimum-variance fusion of beta."""
+    run_members(state, u, params, vehicle, dt)
+    fuse_tick(state, u, params, dt, out)
+
+
+@nb.njit(cache=True)
+def fuse_tick(state, u, params, dt, out):
+    """The fusion part of ``step`` on the member outputs already in ``state[F.MEMBER_OUT:]``."""
+    decay = dt / params[FUSION_PARAMS.TIME_CONSTANT]
+    decay = decay if decay < 1.0 else 1.0
+    mark_usable(state, u, params[FUSION_PARAMS.ENTRY_TIME] / dt)
+    update_moments(state, decay)
+    fuse(state, params[FUSION_PARAMS.SIGMA_FLOOR] ** 2, out)
+
+
+@nb.njit(cache=True)
+def run_ticks(state, U, params, vehicle, dt, OUT):
+    for k in range(U.shape[0]):
+        step(state, U[k], params, vehicle, dt, OUT[k])

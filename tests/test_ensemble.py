@@ -1,0 +1,396 @@
+"""Tests of the ``ensemble`` method (slipd.estimators.ensemble).
+
+- the fusion on synthetic members with known independent errors: the weights converge to the
+  inverse-variance weights of eq. 38 and the fused error to the minimum variance;
+- a member that goes bad loses its weight; excluded statuses, invalid required inputs and
+  non-finite outputs get zero weight; start-up falls back to the own sigmas;
+- the registry entry, the params layout (members' defaults under prefixed names, overrides
+  reach the member) and the state layout;
+- the whole ensemble on the simulator: finite outputs, vy = vx tan(beta), weights sum to 1, it
+  matches each member run alone, and zero allocations per step (numba NRT statistics).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slipd.channels import (
+    N_OUT,
+    ST_DEGRADED,
+    ST_INPUT_TIMEOUT,
+    ST_NOT_CONVERGED,
+    ST_RESET,
+    ST_UNAVAILABLE,
+    U_LEN,
+    VALID,
+    In,
+    Out,
+)
+from slipd.estimators import base
+from slipd.estimators import ensemble as ens
+from slipd.estimators.ensemble import FUSION_PARAMS, MEMBERS, N_MEMBERS, F
+
+REPO = Path(__file__).resolve().parents[1]
+DT = 0.01
+
+
+@pytest.fixture(scope="module")
+def vehicle() -> np.ndarray:
+    from slipd.profile import load_profile
+
+    return load_profile("default").vehicle
+
+
+def all_valid_u() -> np.ndarray:
+    u = np.zeros(U_LEN)
+    u[VALID : VALID + len(In)] = 1.0
+    return u
+
+
+def weights(state: np.ndarray) -> np.ndarray:
+    return state[F.WEIGHT : F.WEIGHT + N_MEMBERS].copy()
+
+
+def set_member(state, m, beta, sigma=1e-5, status=0, vx=20.0, mu=math.nan, fclass=0.0):
+    row = F.MEMBER_OUT + m * N_OUT
+    state[row + Out.BETA] = beta
+    state[row + Out.BETA_RATE] = 0.0
+    state[row + Out.VX] = vx
+    state[row + Out.VY] = vx * math.tan(beta)
+    state[row + Out.MU] = mu
+    state[row + Out.SIGMA_BETA] = sigma
+    state[row + Out.ROLL] = 0.0
+    state[row + Out.FRICTION_CLASS] = fclass
+    state[row + Out.STATUS] = float(status)
+
+
+def synthetic_run(sigmas_deg, n, params, vehicle, seed=0, bias_from=None, bias_deg=0.0):
+    """Members beta_i = beta + e_i, e_i ~ N(0, sigma_i^2) independent; returns (W, fused error,
+    member errors) over the ticks."""
+    rng = np.random.default_rng(seed)
+    state = ens.init(params, vehicle)
+    u = all_valid_u()
+    out = np.zeros(N_OUT)
+    sig = np.radians(np.asarray(sigmas_deg))
+    W = np.zeros((n, N_MEMBERS))
+    fused_err = np.zeros(n)
+    member_err = np.zeros((n, N_MEMBERS))
+    for k in range(n):
+        beta = 0.05 * math.sin(0.3 * k * DT)
+        e = rng.normal(0.0, sig)
+        if bias_from is not None and k >= bias_from:
+            e[0] += math.radians(bias_deg)
+        for m in range(N_MEMBERS):
+            set_member(state, m, beta + e[m])
+        ens.fuse_tick(state, u, params, DT, out)
+        W[k] = weights(state)
+        fused_err[k] = out[Out.BETA] - beta
+        member_err[k] = e
+    return W, fused_err, member_err, out
+
+
+SIGMAS_DEG = [0.1, 0.2, 0.3, 0.5, 1.0, 2.0, 0.15]
+
+
+def test_weights_converge_to_inverse_variance_weights(vehicle):
+    params = base.make_params(ens, {"time_constant": 30.0})
+    n = 40000
+    W, fused_err, member_err, out = synthetic_run(SIGMAS_DEG, n, params, vehicle)
+    floor = params[FUSION_PARAMS.SIGMA_FLOOR] ** 2
+    inverse = 1.0 / (np.radians(SIGMAS_DEG) ** 2 + floor)
+    expected = inverse / inverse.sum()
+    late = W[n // 2 :].mean(axis=0)
+    np.testing.assert_allclose(late, expected, rtol=0.15, atol=0.005)
+    assert np.allclose(W.sum(axis=1), 1.0)
+    # the fused error reaches the minimum variance 1 / sum(1 / sigma_i^2) and beats every member
+    rms = np.sqrt(np.mean(fused_err[n // 2 :] ** 2))
+    optimum = math.sqrt(1.0 / np.sum(1.0 / np.radians(SIGMAS_DEG) ** 2))
+    assert rms < 1.1 * optimum
+    assert rms < 0.8 * np.sqrt(np.mean(member_err[n // 2 :] ** 2, axis=0)).min()
+    # and the reported sigma_beta says so
+    assert out[Out.SIGMA_BETA] == pytest.approx(math.sqrt(1.0 / inverse.sum()), rel=0.25)
+
+
+def min_variance_weights(P: np.ndarray) -> np.ndarray:
+    """Eq. 38 with negative weights clipped (as the kernel does), by numpy."""
+    x = np.linalg.solve(P, np.ones(len(P)))
+    x = np.clip(x, 0.0, None)
+    return x / x.sum()
+
+
+def test_family_common_error_is_identified_and_does_not_out_vote(vehicle):
+    """dk_ekf, d_ekf, k_kf share a 1 deg error on top of small own errors: independent members
+    would make them look best (their differences are small); the family term finds C_f."""
+    params = base.make_params(ens, {"time_constant": 30.0})
+    floor = params[FUSION_PARAMS.SIGMA_FLOOR] ** 2
+    own_deg = np.array([1.0, 0.05, 0.08, 0.1, 0.3, 0.5, 0.8])
+    common_deg = 1.0
+    family = np.array(ens.FAMILY) == ens.FAMILY[MEMBERS.index("dk_ekf")]
+    rng = np.random.default_rng(5)
+    state = ens.init(params, vehicle)
+    u = all_valid_u()
+    out = np.zeros(N_OUT)
+    n = 40000
+    W = np.zeros((n, N_MEMBERS))
+    fused_err = np.zeros(n)
+    for k in range(n):
+        e = rng.normal(0.0, np.radians(own_deg))
+        e[family] += rng.normal(0.0, math.radians(common_deg))
+        for m in range(N_MEMBERS):
+            set_member(state, m, 0.02 + e[m])
+        ens.fuse_tick(state, u, params, DT, out)
+        W[k] = weights(state)
+        fused_err[k] = out[Out.BETA] - 0.02
+    P = np.diag(np.radians(own_deg) ** 2) + floor * np.eye(N_MEMBERS)
+    P[np.ix_(family, family)] += math.radians(common_deg) ** 2
+    expected = min_variance_weights(P)
+    np.testing.assert_allclose(W[n // 2 :].mean(axis=0), expected, atol=0.04)
+    assert W[n // 2 :, family].sum(axis=1).mean() < 0.2
+    common = state[F.COMMON + ens.FAMILY[MEMBERS.index("dk_ekf")]]
+    assert common == pytest.approx(math.radians(common_deg) ** 2, rel=0.3)
+    rms = np.sqrt(np.mean(fused_err[n // 2 :] ** 2))
+    optimum = math.sqrt(expected @ P @ expected)
+    assert rms < 1.15 * optimum
+    assert np.degrees(rms) < 0.3  # independence would follow the family: about 1 deg
+
+
+def test_equal_members_get_equal_weights(vehicle):
+    params = base.make_params(ens, {"time_constant": 30.0})
+    W, *_ = synthetic_run([0.3] * N_MEMBERS, 20000, params, vehicle, seed=3)
+    np.testing.assert_allclose(W[10000:].mean(axis=0), 1.0 / N_MEMBERS, rtol=0.1)
+
+
+def test_a_member_that_goes_bad_loses_its_weight(vehicle):
+    params = base.make_params(ens)  # default forgetting (2 s)
+    n, k_bad = 6000, 3000
+    W, fused_err, *_ = synthetic_run(SIGMAS_DEG, n, params, vehicle, seed=1,
+                                     bias_from=k_bad, bias_deg=3.0)  # fmt: skip
+    assert W[k_bad - 500 : k_bad, 0].mean() > 0.3  # the best member leads before
+    tau_ticks = int(params[FUSION_PARAMS.TIME_CONSTANT] / DT)
+    assert W[k_bad + 3 * tau_ticks :, 0].max() < 0.01
+    # a 3 deg bias of the once-best member ends up below 0.1 deg in the fused estimate
+    assert np.degrees(np.abs(fused_err[k_bad + 3 * tau_ticks :]).mean()) < 0.1
+    assert np.allclose(W.sum(axis=1), 1.0)
+
+
+@pytest.mark.parametrize(
+    "bad_status", [ST_UNAVAILABLE, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET]
+)
+def test_excluded_status_gets_zero_weight_that_tick(bad_status, vehicle):
+    params = base.make_params(ens)
+    state = ens.init(params, vehicle)
+    u = all_valid_u()
+    out = np.zeros(N_OUT)
+    rng = np.random.default_rng(2)
+    for _ in range(300):
+        for m in range(N_MEMBERS):
+            set_member(state, m, 0.02 + rng.normal(0.0, 0.002))
+        ens.fuse_tick(state, u, params, DT, out)
+    assert np.all(weights(state) > 0.05)
+    set_member(state, 2, 0.5, status=bad_status)  # a wild value that must not leak in
+    ens.fuse_tick(state, u, params, DT, out)
+    assert weights(state)[2] == 0.0
+    assert abs(out[Out.BETA] - 0.02) < 0.005
+    assert not int(out[Out.STATUS]) & ST_NOT_CONVERGED
+    # back to normal: the member re-enters only after entry_time usable ticks
+    entry = int(params[FUSION_PARAMS.ENTRY_TIME] / DT)
+    for k in range(entry + 1):
+        set_member(state, 2, 0.02)
+        ens.fuse_tick(state, u, params, DT, out)
+        if k < entry - 1:
+            assert weights(state)[2] == 0.0
+    assert weights(state)[2] > 0.0
+
+
+def test_non_finite_output_and_missing_required_input_get_zero_weight(vehicle):
+    params = base.make_params(ens)
+    state = ens.init(params, vehicle)
+    u = all_valid_u()
+    out = np.zeros(N_OUT)
+    for _ in range(300):
+        for m in range(N_MEMBERS):
+            set_member(state, m, 0.01 * (1 + m % 3))
+        ens.fuse_tick(state, u, params, DT, out)
+    gnss = MEMBERS.index("gnss_magnetometer")
+    assert weights(state)[gnss] > 0.0
+    set_member(state, 0, math.nan)
+    set_member(state, 1, 0.02, vx=math.inf)
+    u[VALID + In.GNSS_FIX] = 0.0  # gnss_magnetometer requires it; the core methods do not
+    ens.fuse_tick(state, u, params, DT, out)
+    w = weights(state)
+    assert w[0] == 0.0 and w[1] == 0.0 and w[gnss] == 0.0
+    assert w.sum() == pytest.approx(1.0)
+    assert np.all(np.isfinite(out[[Out.BETA, Out.VX, Out.VY, Out.SIGMA_BETA]]))
+
+
+def test_outputs_are_consistent_and_mu_comes_from_the_members_that_estimate_it(vehicle):
+    params = base.make_params(ens)
+    state = ens.init(params, vehicle)
+    u = all_valid_u()
+    out = np.zeros(N_OUT)
+    rng = np.random.default_rng(4)
+    for _ in range(400):
+        for m in range(N_MEMBERS):
+            mu = 0.4 if m == 4 else (0.6 if m == 6 else math.nan)
+            cls = 1.0 if m == 4 else 0.0
+            set_member(state, m, 0.1 + rng.normal(0.0, 0.003), vx=15.0 + 0.1 * m,
+                       mu=mu, fclass=cls, status=ST_DEGRADED if m == 5 else 0)  # fmt: skip
+        ens.fuse_tick(state, u, params, DT, out)
+    w = weights(state)
+    assert out[Out.VY] == pytest.approx(out[Out.VX] * math.tan(out[Out.BETA]))
+    assert out[Out.VX] == pytest.approx(np.sum(w * (15.0 + 0.1 * np.arange(N_MEMBERS))))
+    expected_mu = (0.4 * w[4] + 0.6 * w[6]) / (w[4] + w[6])
+    assert out[Out.MU] == pytest.approx(expected_mu)
+    assert out[Out.FRICTION_CLASS] == 1.0
+    assert int(out[Out.STATUS]) & ST_DEGRADED  # a fused member says degraded
+    assert 0.0 < out[Out.SIGMA_BETA] < math.radians(0.5)
+
+
+def test_start_up_uses_the_own_sigmas_and_says_not_converged(vehicle):
+    params = base.make_params(ens)
+    state = ens.init(params, vehicle)
+    u = all_valid_u()
+    out = np.zeros(N_OUT)
+    for m in range(N_MEMBERS):
+        # a member at 0.3 rad claiming 1 rad of sigma against six at 0.01 rad claiming 0.001
+        bad = m == N_MEMBERS - 1
+        set_member(state, m, 0.3 if bad else 0.01, sigma=1.0 if bad else 1e-3)
+    ens.fuse_tick(state, u, params, DT, out)
+    assert int(out[Out.STATUS]) & ST_NOT_CONVERGED
+    assert out[Out.BETA] == pytest.approx(0.01, abs=1e-5)
+    # nothing finite at all: beta 0, flagged
+    state = ens.init(params, vehicle)
+    for m in range(N_MEMBERS):
+        set_member(state, m, math.nan, status=ST_UNAVAILABLE)
+    ens.fuse_tick(state, u, params, DT, out)
+    assert out[Out.BETA] == 0.0
+    assert int(out[Out.STATUS]) & ST_NOT_CONVERGED and int(out[Out.STATUS]) & ST_INPUT_TIMEOUT
+
+
+def test_registry_and_params_layout(vehicle):
+    assert base.available()[-1] == "ensemble"  # append-only: the index is the bus estimator id
+    method = base.load("ensemble", {"dk_ekf__min_speed": 7.5, "time_constant": 3.0})
+    assert method.params[FUSION_PARAMS.TIME_CONSTANT] == 3.0
+    for name in MEMBERS:
+        module = base.load(name).module
+        own = ens.member_params(method.params, name)
+        expected = base.make_params(module, {"min_speed": 7.5} if name == "dk_ekf" else None)
+        np.testing.assert_array_equal(own, expected)
+    state = method.init(vehicle)
+    bounds = state[F.STATE_BOUNDS : F.STATE_BOUNDS + N_MEMBERS + 1].astype(int)
+    assert bounds[0] == F.END and bounds[-1] == len(state)
+    for m, name in enumerate(MEMBERS):
+        mod = base.load(name)
+        np.testing.assert_array_equal(state[bounds[m] : bounds[m + 1]], mod.init(vehicle))
+    for name in ("zero", "pseudo_fusion_kbe", "hybrid_friction_nocls", "ensemble"):
+        assert name not in MEMBERS
+
+
+@pytest.fixture(scope="module")
+def simulated_drive():
+    from slipd.sim import simulate
+
+    result = simulate("double_lane_change", vehicle=2, seed=0)
+    return result.truth, np.ascontiguousarray(result.ticks())
+
+
+def test_ensemble_on_the_simulator_runs_each_member_as_alone(simulated_drive, vehicle):
+    truth, U = simulated_drive
+    method = base.load("ensemble")
+    state = method.init(vehicle)
+    OUT = np.zeros((U.shape[0], N_OUT))
+    method.run_ticks(state, U, method.params, vehicle, DT, OUT)
+    assert np.all(np.isfinite(OUT[:, [Out.BETA, Out.BETA_RATE, Out.VX, Out.VY, Out.ROLL]]))
+    np.testing.assert_allclose(OUT[:, Out.VY], OUT[:, Out.VX] * np.tan(OUT[:, Out.BETA]))
+    settled = (OUT[:, Out.STATUS].astype(int) & ST_NOT_CONVERGED) == 0
+    assert settled[-100:].all()
+    assert np.all(np.isfinite(OUT[settled, Out.SIGMA_BETA]))
+    assert weights(state).sum() == pytest.approx(1.0)
+    # each member inside the ensemble computes exactly what it computes alone
+    bounds = state[F.STATE_BOUNDS : F.STATE_BOUNDS + N_MEMBERS + 1].astype(int)
+    for m, name in enumerate(MEMBERS):
+        alone = base.load(name)
+        own_state = alone.init(vehicle)
+        own_out = np.zeros((U.shape[0], N_OUT))
+        alone.run_ticks(own_state, U, alone.params, vehicle, DT, own_out)
+        np.testing.assert_array_equal(state[bounds[m] : bounds[m + 1]], own_state, err_msg=name)
+        row = F.MEMBER_OUT + m * N_OUT
+        np.testing.assert_array_equal(state[row : row + N_OUT], own_out[-1], err_msg=name)
+    # the fused beta is within the members' range and not worse than their median
+    n = min(U.shape[0], truth["t"].size)
+    fast = np.hypot(truth["vx"][:n], truth["vy"][:n]) > 20.0 / 3.6
+    rms = float(np.sqrt(np.mean((OUT[:n, Out.BETA] - truth["beta"][:n])[fast] ** 2)))
+    member_rms = []
+    for name in MEMBERS:
+        alone = base.load(name)
+        own_state = alone.init(vehicle)
+        own_out = np.zeros((U.shape[0], N_OUT))
+        alone.run_ticks(own_state, U, alone.params, vehicle, DT, own_out)
+        error = (own_out[:n, Out.BETA] - truth["beta"][:n])[fast]
+        member_rms.append(float(np.sqrt(np.mean(error**2))))
+    assert rms <= np.median(member_rms)
+
+
+NRT_SCRIPT = textwrap.dedent(
+    """
+    import json
+    import numpy as np
+    from numba.core.registry import cpu_target
+    from numba.core.runtime import rtsys
+    from slipd.channels import N_OUT, U_LEN, VALID, WHEEL_SPEEDS, In
+    from slipd.estimators import base
+    from slipd.profile import load_profile
+
+    vehicle = load_profile("default").vehicle
+    n = 3000
+    t = np.arange(n) * 0.01
+    U = np.zeros((n, U_LEN))
+    U[:, In.STEER] = 0.03 * np.sin(t)
+    U[:, In.YAW_RATE] = 0.2 * np.sin(t)
+    U[:, In.AY] = 3.0 * np.sin(t)
+    U[:, In.AZ] = 9.81
+    U[:, In.MAG_X] = 20.0
+    U[:, In.MAG_Z] = -40.0
+    U[:, In.GNSS_VN] = 20.0
+    U[:, In.GNSS_FIX] = 1.0
+    for ch in WHEEL_SPEEDS:
+        U[:, ch] = 20.0
+    U[:, VALID : VALID + len(In)] = 1.0
+    U[1000:1100, VALID + In.AY] = 0.0  # the fallback paths too
+    U[2000:2050, VALID : VALID + 12] = 0.0
+    U[:, 2 * len(In)] = t
+    OUT = np.zeros((n, N_OUT))
+    rtsys.initialize(cpu_target.target_context)
+    method = base.load("ensemble")
+    state = method.init(vehicle)
+
+    def allocations(start, stop):
+        before = rtsys.get_allocation_stats()
+        method.run_ticks(state, U[start:stop], method.params, vehicle, 0.01, OUT[start:stop])
+        after = rtsys.get_allocation_stats()
+        return after.alloc - before.alloc
+
+    allocations(0, 10)  # load / compile
+    print(json.dumps([allocations(10, 20), allocations(20, n)]))
+    """
+)
+
+
+def test_step_allocates_nothing():
+    env = dict(os.environ, NUMBA_NRT_STATS="1")
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
+    result = subprocess.run([sys.executable, "-c", NRT_SCRIPT], env=env, capture_output=True,
+                            text=True, timeout=300)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    ticks_10, ticks_many = json.loads(result.stdout.strip().splitlines()[-1])
+    # whatever the call itself costs (argument boxing), 2970 more ticks add nothing
+    assert ticks_many == ticks_10
