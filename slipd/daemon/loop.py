@@ -34,6 +34,9 @@ from slipd.profile import Profile
 TICK_DT = 0.01
 REOPEN_INTERVAL = 1.0  # s between attempts to reopen a vanished interface
 PERSIST_INTERVAL = 60.0  # s
+LATE_DRAIN_MAX = 64  # frames taken from the socket queue before a tick that is already late
+SOCKET_RECEIVE_BUFFER = 1 << 20  # bytes: ~1 s of a full bus queued while the loop is busy
+IFF_UP = 0x1
 
 
 @dataclass
@@ -60,7 +63,33 @@ def open_bus(config: DaemonConfig, plan_ids: list[tuple[int, bool]]):
     kwargs = {"interface": config.interface, "channel": config.channel, "can_filters": filters}
     if config.interface == "socketcan":
         kwargs["ignore_rx_error_frames"] = True
-    return can.Bus(**kwargs)
+    bus = can.Bus(**kwargs)
+    if config.interface == "socketcan":
+        _enlarge_receive_buffer(bus.socket)
+    return bus
+
+
+def _enlarge_receive_buffer(sock) -> None:
+    """A deeper kernel queue, so a burst while the loop computes is not dropped (SocketCAN
+    drops silently on overflow). SO_RCVBUFFORCE passes rmem_max with CAP_NET_ADMIN; without
+    it SO_RCVBUF gets what rmem_max allows."""
+    import socket
+
+    for option in (getattr(socket, "SO_RCVBUFFORCE", 33), socket.SO_RCVBUF):
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, option, SOCKET_RECEIVE_BUFFER)
+            return
+        except OSError:
+            continue
+
+
+def interface_is_up(channel: str) -> bool | None:
+    """IFF_UP of a network interface from sysfs; None when it does not exist."""
+    try:
+        flags = int(Path(f"/sys/class/net/{channel}/flags").read_text(), 16)
+    except (OSError, ValueError):
+        return None
+    return bool(flags & IFF_UP)
 
 
 class Daemon:
@@ -104,6 +133,7 @@ class Daemon:
                                         config.channel) if config.recorder else None)
         self.server = StatsServer(config.stats_socket, config.prometheus)
         self.bus_down_since: float | None = None
+        self._next_reopen = 0.0
         self.bus_events: list[str] = []
         self.started_at = 0.0
         self.first_frame_at: float | None = None
@@ -165,47 +195,63 @@ class Daemon:
                                 rx=True)
 
     def _receive_until(self, deadline: float) -> None:
+        """Receive and decode frames until ``deadline``. A tick that is already late still
+        takes what the socket has queued (at most LATE_DRAIN_MAX frames), so after an overrun
+        the tick latches the newest inputs instead of starving them."""
         recv = self.bus.recv
+        late_frames = 0
         while True:
             remaining = deadline - time.monotonic()
-            if remaining <= 0.0:
-                return
             if self.bus_down_since is not None:
                 self._try_reopen(deadline)
                 return
+            if remaining <= 0.0:
+                if late_frames >= LATE_DRAIN_MAX:
+                    return
+                late_frames += 1
             try:
-                message = recv(timeout=remaining)
+                message = recv(timeout=max(remaining, 0.0))
             except (self.can.CanOperationError, OSError) as exc:
                 self._bus_failed(exc)
                 continue
             if message is not None:
                 self._on_frame(message)
+            elif remaining <= 0.0:
+                return
 
     def _bus_failed(self, exc: Exception) -> None:
         if self.bus_down_since is None:
             self.bus_down_since = time.monotonic()
+            self._next_reopen = self.bus_down_since + REOPEN_INTERVAL
             event = f"bus {self.config.channel} failed: {exc}; outputs invalid until it is back"
             self.bus_events.append(event)
             self.log(f"slipd: {event}")
             self.notifier.notify(f"STATUS={event}")
 
     def _try_reopen(self, deadline: float) -> None:
-        """After a bus failure: retry once a second; meanwhile sleep to the tick."""
+        """After a bus failure: once a second, if the interface exists and is up, reopen it
+        (a new socket on the interface as it now is: after a delete and re-create its index
+        has changed); meanwhile sleep to the tick."""
         now = time.monotonic()
-        if now - self.bus_down_since >= REOPEN_INTERVAL and self._owns_bus:
-            try:
-                self.bus.shutdown()
-            except Exception:  # noqa: BLE001 - the old socket may already be gone
-                pass
-            try:
-                self.bus = open_bus(self.config, self.plan_ids)
-                event = f"bus {self.config.channel} reopened"
-                self.bus_events.append(event)
-                self.log(f"slipd: {event}")
-                self.bus_down_since = None
-                return
-            except (self.can.CanError, OSError, ValueError):
-                self.bus_down_since = now - REOPEN_INTERVAL + REOPEN_INTERVAL  # retry in 1 s
+        if now >= self._next_reopen and self._owns_bus:
+            self._next_reopen = now + REOPEN_INTERVAL
+            link = interface_is_up(self.config.channel) if self.config.interface == "socketcan" \
+                else True
+            if link:
+                try:
+                    self.bus.shutdown()
+                except Exception:  # noqa: BLE001 - the old socket may already be gone
+                    pass
+                try:
+                    self.bus = open_bus(self.config, self.plan_ids)
+                    down = now - self.bus_down_since
+                    event = f"bus {self.config.channel} reopened after {down:.1f} s"
+                    self.bus_events.append(event)
+                    self.log(f"slipd: {event}")
+                    self.bus_down_since = None
+                    return
+                except (self.can.CanError, OSError, ValueError):
+                    pass
         remaining = deadline - time.monotonic()
         if remaining > 0:
             time.sleep(remaining)

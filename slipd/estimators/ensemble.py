@@ -92,8 +92,8 @@ member's own state vector. Member state and params bounds are written by ``init`
 state rather than frozen into the kernel as constants, so that a member that grows a parameter
 cannot leave a cached kernel reading the wrong slots. Each member's ``step`` is called on
 slices of the ensemble's state and params (views, no allocation). The compiled members are
-linked into this module's cached kernel: after a change of a member module, delete this
-module's files in the numba cache.
+linked into this module's cached kernel; numba would not notice a change of a member module,
+which is why slipd keys its whole numba cache to a hash of its sources (slipd/__init__.py).
 """
 
 from __future__ import annotations
