@@ -13,10 +13,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="default",
                         help="vehicle profile name or TOML path (default: default)")
     parser.add_argument("--estimator", default="kinematic_heuristic",
-                        help="method name or 'all' (default: kinematic_heuristic)")
+                        help="method name, comma-separated names, or 'all' "
+                             "(default: kinematic_heuristic)")
     parser.add_argument("--out", type=Path,
-                        help="write per-tick estimates to FILE.csv (one file per log: with "
-                             "several logs, FILE is a directory)")
+                        help="write per-tick estimates to FILE.csv or FILE.parquet (with "
+                             "several logs, a directory of one file per log, see --format)")
+    parser.add_argument("--format", choices=("csv", "parquet"), default="csv",
+                        help="table format of the per-log files when --out is a directory")
     parser.add_argument("--candump", type=Path, metavar="OUT.log",
                         help="write the input merged with slipd's output frames")
     parser.add_argument("--skip-bad", action="store_true",
@@ -38,7 +41,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _methods(name: str) -> list[str]:
     from slipd.estimators import base
 
-    return base.available() if name == "all" else [name]
+    if name == "all":
+        return base.available()
+    names = [n.strip() for n in name.split(",") if n.strip()]
+    for n in names:
+        base.load(n)  # an unknown name fails here, naming the available ones
+    return names
 
 
 def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | None,
@@ -74,7 +82,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
         valid = (estimate.out[:, 8].astype(int) & 1).mean() if len(estimate.t) else 0.0
         lines.append(f"  {estimate.method}: {valid * 100:.1f} % of ticks valid")
     if out is not None:
-        outputs.write_csv(out, estimates)
+        outputs.write_table(out, estimates)
         lines.append(f"  estimates -> {out}")
     if candump is not None:
         channel = len(frames.channels)
@@ -102,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         out = args.out
         if out is not None and len(args.logs) > 1:
             out.mkdir(parents=True, exist_ok=True)
-            out = out / (log.name.split(".")[0] + ".csv")
+            out = out / (log.name.split(".")[0] + f".{args.format}")
         targets.append((log, args.profile, methods, out, args.candump, args.skip_bad))
     if len(targets) == 1:
         print(replay_one(*targets[0]))
