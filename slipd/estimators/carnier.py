@@ -43,18 +43,18 @@ import numpy as np
 from slipd.channels import (
     ST_DEGRADED,
     ST_INPUT_TIMEOUT,
-    VALID,
     G,
     In,
     Veh,
 )
 from slipd.estimators.preprocess import (
+    channel,
     compensate_gravity_ay,
     compensate_wheel_speeds,
     derivative_filter,
+    imu_at_cog,
     roll_complementary_filter,
     roll_static_gain,
-    translate_to_cog,
 )
 
 
@@ -127,13 +127,6 @@ BURCKHARDT_SNOW = (0.1946, 94.129, 0.0646)
 
 
 @nb.njit(cache=True)
-def channel(u, ch):
-    """(value, ok) of input channel ``ch``: ok when its validity flag is set and it is finite."""
-    v = u[ch]
-    return v, (u[VALID + ch] > 0.5 and math.isfinite(v))
-
-
-@nb.njit(cache=True)
 def read_inputs(state, u, vehicle, cutoff_hz, roll_time_constant, dt):
     """Pre-processed IMU and steer of one tick (the paper's "standard filtering techniques").
 
@@ -163,15 +156,9 @@ def read_inputs(state, u, vehicle, cutoff_hz, roll_time_constant, dt):
         status |= ST_DEGRADED  # optional: the CoG shift falls back toward planar
     roll_rate = roll_rate if roll_rate_ok else 0.0
     pitch_rate = pitch_rate if pitch_rate_ok else 0.0
-    yaw_acc = derivative_filter(state, S.YAW_RATE_FILTERED, yaw_rate, dt, cutoff_hz)
-    roll_acc = derivative_filter(state, S.ROLL_RATE_FILTERED, roll_rate, dt, cutoff_hz)
-    pitch_acc = derivative_filter(state, S.PITCH_RATE_FILTERED, pitch_rate, dt, cutoff_hz)
-    ax_imu, ax_ok = channel(u, In.AX)
-    ay_imu, ay_ok = channel(u, In.AY)
-    ax, ay, _ = translate_to_cog(
-        ax_imu if ax_ok else 0.0, ay_imu if ay_ok else 0.0, 0.0,
-        roll_rate, pitch_rate, yaw_rate, roll_acc, pitch_acc, yaw_acc,
-        vehicle[Veh.IMU_X], vehicle[Veh.IMU_Y], vehicle[Veh.IMU_Z],
+    ax, ay, yaw_acc, ax_ok, ay_ok = imu_at_cog(
+        state, S.YAW_RATE_FILTERED, S.ROLL_RATE_FILTERED, S.PITCH_RATE_FILTERED, u, yaw_rate,
+        roll_rate, pitch_rate, dt, cutoff_hz, vehicle,
     )  # fmt: skip
     if ax_ok:
         state[S.LAST_AX] = ax

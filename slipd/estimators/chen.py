@@ -135,12 +135,14 @@ from slipd.channels import (
 from slipd.errors import ConfigError
 from slipd.estimators.preprocess import (
     DERIVATIVE_CUTOFF_HZ,
+    channel,
     compensate_gravity_ay,
     compensate_wheel_speeds,
     derivative_filter,
+    gaussian_bell,
+    imu_at_cog,
     roll_complementary_filter,
     roll_static_gain,
-    translate_to_cog,
 )
 
 
@@ -330,13 +332,6 @@ BETA_LIMIT = 0.25 * math.pi
 # ---------------------------------------------------------------------------------------------
 # small helpers
 # ---------------------------------------------------------------------------------------------
-
-
-@nb.njit(cache=True)
-def channel(u, ch):
-    """(value, ok) of input channel ``ch``: ok when its validity flag is set and it is finite."""
-    v = u[ch]
-    return v, (u[VALID + ch] > 0.5 and math.isfinite(v))
 
 
 @nb.njit(cache=True)
@@ -666,15 +661,6 @@ def _scalar_update2(state, i_x, i_p, h1, h2, innovation, variance):
     state[i_p] = p11 - k1 * ph1
     state[i_p + 1] = p12 - k1 * ph2
     state[i_p + 2] = p22 - k2 * ph2
-
-
-@nb.njit(cache=True)
-def straight_weight(yaw_rate, ay, sigma_yaw_rate, sigma_ay):
-    """How sure the car runs straight, exp(-(r^2 / s_r^2 + ay^2 / s_ay^2) / 2) (the Gaussian
-    heuristic of Selmanaj 2017 eq. 5-6, on the yaw rate and the lateral acceleration)."""
-    a = yaw_rate / sigma_yaw_rate
-    b = ay / sigma_ay
-    return math.exp(-0.5 * (a * a + b * b))
 
 
 @nb.njit(cache=True)
@@ -1199,15 +1185,9 @@ def read_inputs(state, u, vehicle, roll_time_constant, dt):
     roll_rate = roll_rate if roll_rate_ok else 0.0
     pitch_rate = pitch_rate if pitch_rate_ok else 0.0
     cutoff = DERIVATIVE_CUTOFF_HZ  # Selmanaj section 2.1: 10 Hz
-    yaw_acc = derivative_filter(state, S.YAW_RATE_FILTERED, yaw_rate, dt, cutoff)
-    roll_acc = derivative_filter(state, S.ROLL_RATE_FILTERED, roll_rate, dt, cutoff)
-    pitch_acc = derivative_filter(state, S.PITCH_RATE_FILTERED, pitch_rate, dt, cutoff)
-    ax_imu, ax_ok = channel(u, In.AX)
-    ay_imu, ay_ok = channel(u, In.AY)
-    ax, ay, _ = translate_to_cog(
-        ax_imu if ax_ok else 0.0, ay_imu if ay_ok else 0.0, 0.0,
-        roll_rate, pitch_rate, yaw_rate, roll_acc, pitch_acc, yaw_acc,
-        vehicle[Veh.IMU_X], vehicle[Veh.IMU_Y], vehicle[Veh.IMU_Z],
+    ax, ay, yaw_acc, ax_ok, ay_ok = imu_at_cog(
+        state, S.YAW_RATE_FILTERED, S.ROLL_RATE_FILTERED, S.PITCH_RATE_FILTERED, u, yaw_rate,
+        roll_rate, pitch_rate, dt, cutoff, vehicle,
     )  # fmt: skip
     if ax_ok:
         state[S.LAST_AX] = ax
@@ -1334,8 +1314,8 @@ def step(state, u, params, vehicle, dt, out):
 
     first_tick = state[S.TICKS] < 0.5
     # --- a posteriori at tick k ---------------------------------------------------------------
-    straight = straight_weight(
-        yaw_rate, ay, params[PARAMS.STRAIGHT_SIGMA_YAW_RATE], params[PARAMS.STRAIGHT_SIGMA_AY]
+    straight = gaussian_bell(  # how sure the car runs straight
+        yaw_rate, params[PARAMS.STRAIGHT_SIGMA_YAW_RATE], ay, params[PARAMS.STRAIGHT_SIGMA_AY]
     )
     kbe_update(state, vx_meas, vx_ok, params[PARAMS.R_VX_KBE], params[PARAMS.R_VY0_KBE], straight)
     dbe_update(

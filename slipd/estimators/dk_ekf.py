@@ -28,10 +28,10 @@ import numba as nb
 import numpy as np
 
 from slipd.channels import ST_INPUT_TIMEOUT, ST_NOT_CONVERGED
+from slipd.estimators.preprocess import corner_speed_mean
 from slipd.estimators.righetti_lenzo import (
     S,
     beta_sigma,
-    corner_speed_mean,
     dynamic_predict,
     dynamic_update,
     finish_tick,

@@ -95,7 +95,6 @@ from slipd.channels import (
     ST_NOT_CONVERGED,
     ST_RESET,
     ST_UNAVAILABLE,
-    VALID,
     G,
     In,
     Out,
@@ -103,10 +102,10 @@ from slipd.channels import (
 )
 from slipd.estimators.preprocess import (
     Offsets,
-    compensate_wheel_speeds,
-    derivative_filter,
+    channel,
+    corner_speed_mean,
+    imu_at_cog,
     roll_static_gain,
-    translate_to_cog,
     update_gyro_offset,
     update_standstill,
 )
@@ -432,43 +431,9 @@ def reset_calibration(state: np.ndarray, params: np.ndarray) -> None:
 
 
 @nb.njit(cache=True)
-def channel(u, ch):
-    """(value, ok): ok when the validity flag is set and the value is finite."""
-    v = u[ch]
-    return v, (u[VALID + ch] > 0.5 and math.isfinite(v))
-
-
-@nb.njit(cache=True)
 def entry(tick):
     """Offset of the history entry of tick ``tick`` (a ring of BUFFER_TICKS)."""
     return _HISTORY + (int(tick) % BUFFER_TICKS) * ENTRY_LEN
-
-
-@nb.njit(cache=True)
-def wheel_speed_mean(u, steer, yaw_rate, vehicle):
-    """Mean of the valid wheel speeds referred to the CoG (preprocess.compensate_wheel_speeds);
-    the speed output while the GNSS filter cannot run. Returns (vx, number of wheels)."""
-    c_fl, c_fr, c_rl, c_rr = compensate_wheel_speeds(
-        u[In.WHEEL_SPEED_FL], u[In.WHEEL_SPEED_FR], u[In.WHEEL_SPEED_RL], u[In.WHEEL_SPEED_RR],
-        steer, yaw_rate, vehicle[Veh.TRACK_F], vehicle[Veh.TRACK_R],
-    )  # fmt: skip
-    total = 0.0
-    count = 0
-    if channel(u, In.WHEEL_SPEED_FL)[1]:
-        total += c_fl
-        count += 1
-    if channel(u, In.WHEEL_SPEED_FR)[1]:
-        total += c_fr
-        count += 1
-    if channel(u, In.WHEEL_SPEED_RL)[1]:
-        total += c_rl
-        count += 1
-    if channel(u, In.WHEEL_SPEED_RR)[1]:
-        total += c_rr
-        count += 1
-    if count == 0:
-        return 0.0, 0
-    return total / count, count
 
 
 @nb.njit(cache=True)
@@ -751,16 +716,11 @@ def step(state, u, params, vehicle, dt, out):
         steer = state[S.LAST_STEER]
         status |= ST_INPUT_TIMEOUT
     cutoff = params[PARAMS.YAW_ACC_CUTOFF_HZ]
-    yaw_acc = derivative_filter(state, S.YAW_RATE_FILTERED, yaw_rate, dt, cutoff)
-    roll_acc = derivative_filter(state, S.ROLL_RATE_FILTERED, roll_rate, dt, cutoff)
-    pitch_acc = derivative_filter(state, S.PITCH_RATE_FILTERED, pitch_rate, dt, cutoff)
-    ax_imu, ax_ok = channel(u, In.AX)
-    ay_imu, ay_ok = channel(u, In.AY)
-    ax, ay, _ = translate_to_cog(
-        ax_imu if ax_ok else 0.0, ay_imu if ay_ok else 0.0, 0.0,
-        roll_rate, pitch_rate, yaw_rate, roll_acc, pitch_acc, yaw_acc,
-        vehicle[Veh.IMU_X], vehicle[Veh.IMU_Y], vehicle[Veh.IMU_Z],
+    ax, ay, yaw_acc, ax_ok, ay_ok = imu_at_cog(
+        state, S.YAW_RATE_FILTERED, S.ROLL_RATE_FILTERED, S.PITCH_RATE_FILTERED, u, yaw_rate,
+        roll_rate, pitch_rate, dt, cutoff, vehicle,
     )  # fmt: skip
+    ay_imu = u[In.AY]  # at the sensor, for the static roll model below
     if ax_ok:
         state[S.LAST_AX] = ax
     else:
@@ -768,7 +728,7 @@ def step(state, u, params, vehicle, dt, out):
         status |= ST_INPUT_TIMEOUT
     if not ay_ok:
         status |= ST_INPUT_TIMEOUT
-    vx_wheels, n_wheels = wheel_speed_mean(u, steer, yaw_rate, vehicle)
+    vx_wheels, n_wheels = corner_speed_mean(u, steer, yaw_rate, vehicle)
     if n_wheels < 4:
         status |= ST_INPUT_TIMEOUT
 

@@ -229,14 +229,6 @@ def _reset(state, params):
 
 
 @nb.njit(cache=True)
-def _gaussian(value, sigma, rate, sigma_rate):
-    """Eq. 7: bivariate Gaussian bell, 1 at (0, 0), -> 0 when either argument grows."""
-    a = value / sigma
-    b = rate / sigma_rate
-    return math.exp(-0.5 * (a * a + b * b))
-
-
-@nb.njit(cache=True)
 def step(state, u, params, vehicle, dt, out):
     """One 100 Hz tick of the Selmanaj observer; see the module docstring.
 
@@ -420,14 +412,16 @@ def step(state, u, params, vehicle, dt, out):
     beta_acc_meas = pp.derivative_filter(state, _D_BETA_RATE, beta_rate_meas, dt, cutoff)
     f_heuristic = (
         params[PARAMS.F_GAIN]
-        * _gaussian(yaw_rate, params[PARAMS.SIGMA_YAW_RATE], yaw_acc, params[PARAMS.SIGMA_YAW_ACC])
-        * _gaussian(
+        * pp.gaussian_bell(
+            yaw_rate, params[PARAMS.SIGMA_YAW_RATE], yaw_acc, params[PARAMS.SIGMA_YAW_ACC]
+        )
+        * pp.gaussian_bell(
             steer_wheel,
             params[PARAMS.SIGMA_STEER],
             steer_wheel_rate,
             params[PARAMS.SIGMA_STEER_RATE],
         )
-        * _gaussian(
+        * pp.gaussian_bell(
             beta_rate_meas,
             params[PARAMS.SIGMA_BETA_RATE],
             beta_acc_meas,

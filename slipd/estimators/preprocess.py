@@ -32,7 +32,7 @@ import math
 import numba as nb
 import numpy as np
 
-from slipd.channels import G
+from slipd.channels import VALID, G, In, Veh
 
 #: Cut-off of every derivative filter (Selmanaj section 2.1: "derivative filters with a cutoff
 #: frequency of 10 Hz", designed in continuous time and discretised by forward Euler).
@@ -203,6 +203,37 @@ def translate_to_cog(
 
 
 @nb.njit(cache=True)
+def imu_at_cog(
+    state,
+    yaw_slot,
+    roll_slot,
+    pitch_slot,
+    u,
+    yaw_rate,
+    roll_rate,
+    pitch_rate,
+    dt,
+    cutoff_hz,
+    vehicle,
+):
+    """The IMU's ax and ay at the CoG: the three rates' derivatives (derivative_filter, its
+    memories in state[yaw_slot], [roll_slot], [pitch_slot]) and translate_to_cog with the
+    profile's IMU position; an invalid acceleration enters as 0 (the caller decides the
+    fallback). Returns (ax, ay, yaw_acc, ax_ok, ay_ok)."""
+    yaw_acc = derivative_filter(state, yaw_slot, yaw_rate, dt, cutoff_hz)
+    roll_acc = derivative_filter(state, roll_slot, roll_rate, dt, cutoff_hz)
+    pitch_acc = derivative_filter(state, pitch_slot, pitch_rate, dt, cutoff_hz)
+    ax_imu, ax_ok = channel(u, In.AX)
+    ay_imu, ay_ok = channel(u, In.AY)
+    ax, ay, _ = translate_to_cog(
+        ax_imu if ax_ok else 0.0, ay_imu if ay_ok else 0.0, 0.0,
+        roll_rate, pitch_rate, yaw_rate, roll_acc, pitch_acc, yaw_acc,
+        vehicle[Veh.IMU_X], vehicle[Veh.IMU_Y], vehicle[Veh.IMU_Z],
+    )  # fmt: skip
+    return ax, ay, yaw_acc, ax_ok, ay_ok
+
+
+@nb.njit(cache=True)
 def translate_to_cog_planar(ax, ay, yaw_rate, yaw_acc, imu_x, imu_y):
     """Planar special case of ``translate_to_cog`` (Righetti-Lenzo section 3.1):
     ax_cog = ax + r_dot imu_y + r^2 imu_x,  ay_cog = ay - r_dot imu_x + r^2 imu_y."""
@@ -344,6 +375,50 @@ def update_ay_offset(buf, i, ay_off, yaw_rate, vx, active, dt, settling_time):
 # ---------------------------------------------------------------------------------------------
 # Vx from the wheel speeds (Selmanaj section 2.3)
 # ---------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def channel(u, ch):
+    """(value, ok) of input channel ``ch``: ok when its validity flag is set and it is finite."""
+    v = u[ch]
+    return v, (u[VALID + ch] > 0.5 and math.isfinite(v))
+
+
+@nb.njit(cache=True)
+def gaussian_bell(a, sigma_a, b, sigma_b):
+    """exp(-(a^2 / sigma_a^2 + b^2 / sigma_b^2) / 2): Selmanaj eq. 5-7's bivariate Gaussian, 1 at
+    (0, 0), -> 0 when either argument grows (also Chen's straight-running weight)."""
+    x = a / sigma_a
+    y = b / sigma_b
+    return math.exp(-0.5 * (x * x + y * y))
+
+
+@nb.njit(cache=True)
+def corner_speed_mean(u, steer, yaw_rate, vehicle):
+    """Mean of the valid wheel speeds referred to the CoG (compensate_wheel_speeds; the corner
+    velocities of Righetti-Lenzo eq. 5-6). Returns (vx [m/s], number of valid wheels); a wheel
+    counts when its validity flag is set and its value is finite."""
+    corner_fl, corner_fr, corner_rl, corner_rr = compensate_wheel_speeds(
+        u[In.WHEEL_SPEED_FL], u[In.WHEEL_SPEED_FR], u[In.WHEEL_SPEED_RL], u[In.WHEEL_SPEED_RR],
+        steer, yaw_rate, vehicle[Veh.TRACK_F], vehicle[Veh.TRACK_R],
+    )  # fmt: skip
+    total = 0.0
+    count = 0
+    if channel(u, In.WHEEL_SPEED_FL)[1]:
+        total += corner_fl
+        count += 1
+    if channel(u, In.WHEEL_SPEED_FR)[1]:
+        total += corner_fr
+        count += 1
+    if channel(u, In.WHEEL_SPEED_RL)[1]:
+        total += corner_rl
+        count += 1
+    if channel(u, In.WHEEL_SPEED_RR)[1]:
+        total += corner_rr
+        count += 1
+    if count == 0:
+        return 0.0, 0
+    return total / count, count
 
 
 @nb.njit(cache=True)

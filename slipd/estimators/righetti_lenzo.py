@@ -66,15 +66,14 @@ from slipd.channels import (
     ST_INPUT_TIMEOUT,
     ST_NOT_CONVERGED,
     ST_RESET,
-    VALID,
     G,
     In,
     Out,
     Veh,
 )
 from slipd.estimators.preprocess import (
+    channel,
     compensate_gravity_ay,
-    compensate_wheel_speeds,
     derivative_filter,
     roll_complementary_filter,
     roll_static_gain,
@@ -345,51 +344,6 @@ def kinematic_update(state, vx_meas, vx_ok, r_vx, vy_pseudo, vy_ok, r_vy):
     state[S.KIN_P_XX] = p11
     state[S.KIN_P_XY] = p12
     state[S.KIN_P_YY] = p22
-
-
-# ---------------------------------------------------------------------------------------------
-# measurements and pre-processing
-# ---------------------------------------------------------------------------------------------
-
-
-@nb.njit(cache=True)
-def corner_speed_mean(u, steer, yaw_rate, vehicle):
-    """vx_meas of eq. 5: the mean of the corner velocities of eq. 6 over the valid wheels.
-
-    v_crn = v_wheel cos(delta) +- r t_f / 2 at the front, v_wheel +- r t_r / 2 at the rear (+ on
-    the left wheels: in a left turn they run on the inner, slower side); the compensation is
-    ``preprocess.compensate_wheel_speeds`` (the same formula as Selmanaj eq. 11). Returns
-    (vx_meas [m/s], number of valid wheels); a wheel counts when its validity flag is set and
-    its value is finite.
-    """
-    corner_fl, corner_fr, corner_rl, corner_rr = compensate_wheel_speeds(
-        u[In.WHEEL_SPEED_FL], u[In.WHEEL_SPEED_FR], u[In.WHEEL_SPEED_RL], u[In.WHEEL_SPEED_RR],
-        steer, yaw_rate, vehicle[Veh.TRACK_F], vehicle[Veh.TRACK_R],
-    )  # fmt: skip
-    total = 0.0
-    count = 0
-    if channel(u, In.WHEEL_SPEED_FL)[1]:
-        total += corner_fl
-        count += 1
-    if channel(u, In.WHEEL_SPEED_FR)[1]:
-        total += corner_fr
-        count += 1
-    if channel(u, In.WHEEL_SPEED_RL)[1]:
-        total += corner_rl
-        count += 1
-    if channel(u, In.WHEEL_SPEED_RR)[1]:
-        total += corner_rr
-        count += 1
-    if count == 0:
-        return 0.0, 0
-    return total / count, count
-
-
-@nb.njit(cache=True)
-def channel(u, ch):
-    """(value, ok) of input channel ``ch``: ok when its validity flag is set and it is finite."""
-    v = u[ch]
-    return v, (u[VALID + ch] > 0.5 and math.isfinite(v))
 
 
 # ---------------------------------------------------------------------------------------------
