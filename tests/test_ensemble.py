@@ -12,16 +12,12 @@
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
 import pytest
+from nrt import allocations, sine_drive_inputs
 
 from slipd.channels import (
     N_OUT,
@@ -38,6 +34,7 @@ from slipd.channels import (
 from slipd.estimators import base
 from slipd.estimators import ensemble as ens
 from slipd.estimators.ensemble import FUSION_PARAMS, MEMBERS, N_MEMBERS, F
+from slipd.profile import load_profile
 
 REPO = Path(__file__).resolve().parents[1]
 DT = 0.01
@@ -340,57 +337,19 @@ def test_ensemble_on_the_simulator_runs_each_member_as_alone(simulated_drive, ve
     assert rms <= np.median(member_rms)
 
 
-NRT_SCRIPT = textwrap.dedent(
-    """
-    import json
-    import numpy as np
-    from numba.core.registry import cpu_target
-    from numba.core.runtime import rtsys
-    from slipd.channels import N_OUT, U_LEN, VALID, WHEEL_SPEEDS, In
-    from slipd.estimators import base
-    from slipd.profile import load_profile
-
-    vehicle = load_profile("default").vehicle
+def test_step_allocates_nothing():
     n = 3000
     t = np.arange(n) * 0.01
-    U = np.zeros((n, U_LEN))
-    U[:, In.STEER] = 0.03 * np.sin(t)
-    U[:, In.YAW_RATE] = 0.2 * np.sin(t)
-    U[:, In.AY] = 3.0 * np.sin(t)
+    U = sine_drive_inputs(n, 0.03, 0.2, 3.0)
     U[:, In.AZ] = 9.81
     U[:, In.MAG_X] = 20.0
     U[:, In.MAG_Z] = -40.0
     U[:, In.GNSS_VN] = 20.0
     U[:, In.GNSS_FIX] = 1.0
-    for ch in WHEEL_SPEEDS:
-        U[:, ch] = 20.0
     U[:, VALID : VALID + len(In)] = 1.0
     U[1000:1100, VALID + In.AY] = 0.0  # the fallback paths too
     U[2000:2050, VALID : VALID + 12] = 0.0
     U[:, 2 * len(In)] = t
-    OUT = np.zeros((n, N_OUT))
-    rtsys.initialize(cpu_target.target_context)
-    method = base.load("ensemble")
-    state = method.init(vehicle)
-
-    def allocations(start, stop):
-        before = rtsys.get_allocation_stats()
-        method.run_ticks(state, U[start:stop], method.params, vehicle, 0.01, OUT[start:stop])
-        after = rtsys.get_allocation_stats()
-        return after.alloc - before.alloc
-
-    allocations(0, 10)  # load / compile
-    print(json.dumps([allocations(10, 20), allocations(20, n)]))
-    """
-)
-
-
-def test_step_allocates_nothing():
-    env = dict(os.environ, NUMBA_NRT_STATS="1")
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
-    result = subprocess.run([sys.executable, "-c", NRT_SCRIPT], env=env, capture_output=True,
-                            text=True, timeout=300)  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    ticks_10, ticks_many = json.loads(result.stdout.strip().splitlines()[-1])
+    ticks_10, ticks_many = allocations(["ensemble"], U, load_profile("default").vehicle)["ensemble"]
     # whatever the call itself costs (argument boxing), 2970 more ticks add nothing
     assert ticks_many == ticks_10

@@ -16,17 +16,13 @@
 from __future__ import annotations
 
 import functools
-import json
 import math
-import os
-import subprocess
-import sys
-import textwrap
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from nrt import allocations
 
 from slipd.channels import (
     N_OUT,
@@ -40,6 +36,7 @@ from slipd.channels import (
 from slipd.estimators import base, yoon
 from slipd.estimators import gnss_magnetometer as gm
 from slipd.estimators.gnss_magnetometer import PARAMS, S
+from slipd.profile import load_profile
 
 DT = 0.01
 REPO = Path(__file__).resolve().parents[1]
@@ -423,44 +420,12 @@ def test_non_finite_state_resets_and_says_so(vehicle):
 # allocation and cost
 # ---------------------------------------------------------------------------------------------
 
-NRT_SCRIPT = textwrap.dedent(
-    """
-    import json, sys
-    import numpy as np
-    from numba.core.runtime import rtsys
-    from slipd.channels import N_OUT
-    from slipd.estimators import base
-    from slipd.profile import load_profile
+def test_step_allocates_nothing():
     from slipd.sim import simulate
 
-    vehicle = np.asarray(load_profile("default").vehicle, dtype=np.float64)
     U = simulate("double_lane_change", seed=0).ticks()
-    method = base.load("gnss_magnetometer")
-    state = method.init(vehicle)
-    OUT = np.zeros((U.shape[0], N_OUT))
-    # kernels loaded from the cache do not start the NRT; start it so its counters run
-    rtsys.initialize(__import__("numba").core.registry.cpu_target.target_context)
-
-    def allocations(a, b):
-        before = rtsys.get_allocation_stats()
-        method.run_ticks(state, U[a:b], method.params, vehicle, 0.01, OUT[a:b])
-        after = rtsys.get_allocation_stats()
-        return after.alloc - before.alloc
-
-    allocations(0, 10)  # load / compile
-    print(json.dumps([allocations(10, 20), allocations(20, U.shape[0])]))
-    """
-)
-
-
-def test_step_allocates_nothing():
-    env = dict(os.environ, NUMBA_NRT_STATS="1")
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
-    result = subprocess.run(
-        [sys.executable, "-c", NRT_SCRIPT], capture_output=True, text=True, env=env,
-        cwd=REPO, timeout=300, check=True,
-    )  # fmt: skip
-    few, many = json.loads(result.stdout.strip().splitlines()[-1])
+    counts = allocations(["gnss_magnetometer"], U, load_profile("default").vehicle)
+    few, many = counts["gnss_magnetometer"]
     # whatever the call itself costs (argument unboxing), 1170 more ticks add nothing
     assert many == few
 

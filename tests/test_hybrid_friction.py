@@ -14,16 +14,12 @@ and hybrid_friction_nocls (the adaptive observer alone).
 from __future__ import annotations
 
 import functools
-import json
 import math
-import os
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
 import pytest
+from nrt import allocations, sine_drive_inputs
 
 from slipd.channels import (
     N_OUT,
@@ -42,6 +38,7 @@ from slipd.channels import (
 from slipd.estimators import base, carnier, hybrid_friction, hybrid_friction_nocls
 from slipd.estimators.carnier import S
 from slipd.estimators.hybrid_friction import PARAMS
+from slipd.profile import load_profile
 
 DT = 0.01
 DEG = math.pi / 180.0
@@ -446,63 +443,16 @@ def test_standstill_and_start_up(vehicle):
     assert status[-1] == 0
 
 
-NRT_SCRIPT = textwrap.dedent(
-    """
-    import json, sys
-    import numpy as np
-    from numba.core.registry import cpu_target
-    from numba.core.runtime import rtsys
-    from slipd.channels import N_OUT, U_LEN, VALID, WHEEL_SPEEDS, In
-    from slipd.estimators import base
-    from slipd.profile import load_profile
-
-    vehicle = load_profile("default").vehicle
-    n = 5000
-    t = np.arange(n) * 0.01
-    U = np.zeros((n, U_LEN))
-    U[:, In.STEER] = 0.06 * np.sin(t)
-    U[:, In.YAW_RATE] = 0.3 * np.sin(t)
-    U[:, In.AY] = 6.0 * np.sin(t)
-    U[:, In.ROLL_RATE] = 0.01 * np.cos(t)
-    U[:, In.DRIVE_TORQUE_RL] = U[:, In.DRIVE_TORQUE_RR] = 300.0
-    for ch in WHEEL_SPEEDS:
-        U[:, ch] = 20.0
-    U[:, In.WHEEL_SPEED_RL] += 2.0 * (np.sin(3 * t) > 0.9)  # slip: longitudinal map points
-    for ch in (In.AX, In.AY, In.YAW_RATE, In.ROLL_RATE, In.PITCH_RATE, In.STEER, *WHEEL_SPEEDS):
-        U[:, VALID + ch] = 1.0
-    U[:, VALID + In.DRIVE_TORQUE_FL : VALID + In.BRAKE_TORQUE_RR + 1] = 1.0
-    U[2000:2100, VALID + In.AY] = 0.0  # the fallback paths too
-    U[3000:3050, VALID : VALID + 12] = 0.0
-    OUT = np.zeros((n, N_OUT))
-    rtsys.initialize(cpu_target.target_context)
-    counts = {}
-    for name in sys.argv[1:]:
-        method = base.load(name)
-        state = method.init(vehicle)
-
-        def allocations(ticks):
-            before = rtsys.get_allocation_stats()
-            method.run_ticks(state, U[:ticks], method.params, vehicle, 0.01, OUT[:ticks])
-            after = rtsys.get_allocation_stats()
-            return after.alloc - before.alloc
-
-        allocations(10)  # load / compile
-        counts[name] = [allocations(10), allocations(n)]
-    print(json.dumps(counts))
-    """
-)
-
-
 def test_step_allocates_nothing():
-    env = dict(os.environ, NUMBA_NRT_STATS="1")
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
-    names = ["hybrid_friction", "hybrid_friction_nocls"]
-    result = subprocess.run([sys.executable, "-c", NRT_SCRIPT, *names], env=env,
-                            capture_output=True, text=True, timeout=300)  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    counts = json.loads(result.stdout.strip().splitlines()[-1])
-    for name, (ticks_10, ticks_5000) in counts.items():
-        assert ticks_5000 == ticks_10, name  # 4990 more ticks add nothing
+    U = sine_drive_inputs(5000, 0.06, 0.3, 6.0)
+    t = np.arange(len(U)) * 0.01
+    U[:, In.DRIVE_TORQUE_RL] = U[:, In.DRIVE_TORQUE_RR] = 300.0
+    U[:, In.WHEEL_SPEED_RL] += 2.0 * (np.sin(3 * t) > 0.9)  # slip: longitudinal map points
+    U[:, VALID + In.DRIVE_TORQUE_FL : VALID + In.BRAKE_TORQUE_RR + 1] = 1.0
+    counts = allocations(["hybrid_friction", "hybrid_friction_nocls"], U,
+                         load_profile("default").vehicle)  # fmt: skip
+    for name, (ticks_10, ticks_4980) in counts.items():
+        assert ticks_4980 == ticks_10, name  # 4970 more ticks add nothing
 
 
 # ---------------------------------------------------------------------------------------------

@@ -14,16 +14,12 @@
 from __future__ import annotations
 
 import functools
-import json
 import math
-import os
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
 import pytest
+from nrt import allocations, sine_drive_inputs
 
 from slipd.channels import (
     N_OUT,
@@ -41,7 +37,7 @@ from slipd.channels import (
 )
 from slipd.estimators import base, d_ekf, dk_ekf, k_kf
 from slipd.estimators import righetti_lenzo as rl
-from slipd.estimators.righetti_lenzo import S
+from slipd.estimators.righetti_lenzo import S, default_vehicle
 
 METHODS = {"dk_ekf": dk_ekf, "d_ekf": d_ekf, "k_kf": k_kf}
 #: The paper's own pre-processing (Sec. 3.1: planar CoG translation only). The synthetic plant
@@ -447,64 +443,12 @@ def test_standstill_and_start_up(name, vehicle):
     assert np.all(np.isnan(OUT[:, Out.MU]))
 
 
-NRT_SCRIPT = textwrap.dedent(
-    """
-    import json, sys
-    import numpy as np
-    from numba.core.registry import cpu_target
-    from numba.core.runtime import rtsys
-    from slipd.channels import N_OUT, U_LEN, VALID, WHEEL_SPEEDS, In
-    from slipd.estimators import base
-    from slipd.estimators.righetti_lenzo import default_vehicle
-
-    vehicle = default_vehicle()
-    n = 5000
-    t = np.arange(n) * 0.01
-    U = np.zeros((n, U_LEN))
-    U[:, In.STEER] = 0.03 * np.sin(t)
-    U[:, In.YAW_RATE] = 0.2 * np.sin(t)
-    U[:, In.AY] = 3.0 * np.sin(t)
-    U[:, In.ROLL_RATE] = 0.01 * np.cos(t)
-    for ch in WHEEL_SPEEDS:
-        U[:, ch] = 20.0
-    for ch in (In.AX, In.AY, In.YAW_RATE, In.ROLL_RATE, In.PITCH_RATE, In.STEER, *WHEEL_SPEEDS):
-        U[:, VALID + ch] = 1.0
-    U[2000:2100, VALID + In.AY] = 0.0  # the fallback paths too
-    U[3000:3050, VALID : VALID + 12] = 0.0
-    OUT = np.zeros((n, N_OUT))
-    # kernels loaded from the cache do not start the NRT; start it so its counters run
-    rtsys.initialize(cpu_target.target_context)
-    counts = {}
-    for name in sys.argv[1:]:
-        method = base.load(name)
-        state = method.init(vehicle)
-
-        def allocations(ticks):
-            before = rtsys.get_allocation_stats()
-            method.run_ticks(state, U[:ticks], method.params, vehicle, 0.01, OUT[:ticks])
-            after = rtsys.get_allocation_stats()
-            return after.alloc - before.alloc
-
-        allocations(10)  # load / compile
-        counts[name] = [allocations(10), allocations(n)]
-    print(json.dumps(counts))
-    """
-)
-
-
 def test_step_allocates_nothing():
-    env = dict(os.environ, NUMBA_NRT_STATS="1")
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
-    result = subprocess.run(
-        [sys.executable, "-c", NRT_SCRIPT, *METHODS],
-        env=env, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    counts = json.loads(result.stdout.strip().splitlines()[-1])
+    counts = allocations(METHODS, sine_drive_inputs(5000, 0.03, 0.2, 3.0), default_vehicle())
     assert set(counts) == set(METHODS)
-    for name, (ticks_10, ticks_5000) in counts.items():
-        # whatever the call itself costs (argument boxing), 4990 more ticks add nothing
-        assert ticks_5000 == ticks_10, name
+    for name, (ticks_10, ticks_4980) in counts.items():
+        # whatever the call itself costs (argument boxing), 4970 more ticks add nothing
+        assert ticks_4980 == ticks_10, name
 
 
 # ---------------------------------------------------------------------------------------------
