@@ -160,7 +160,11 @@ class Daemon:
         # decode/sample on a throwaway state, so the real latch and counters stay untouched
         p = self.codec.inputs
         scratch = DecodeState.new(p.n_messages)
-        kernels.decode_frame(p.plan_i, p.plan_f, p.lookup, 0x7FF, False, 8, buffer, 0.0,
+        # a read-only payload, as Codec.decode makes from a received frame's bytes: numba
+        # types it apart from a writable array (measured: a cold cache compiled it in the
+        # first tick, a 1.6 s stall)
+        payload = np.frombuffer(bytes(8), dtype=np.uint8)
+        kernels.decode_frame(p.plan_i, p.plan_f, p.lookup, 0x7FF, False, 8, payload, 0.0,
                              p.timeouts, scratch.latch, scratch.msg_state, scratch.errors,
                              scratch.scratch)
         kernels.sample_latch(scratch.latch, self.codec.channel_timeouts, 0.0, u)
