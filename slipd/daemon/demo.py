@@ -53,7 +53,7 @@ def run_demo(args: argparse.Namespace) -> int:
     log, truth_path = _simulated_drive(args.scenario)
     frames = read_frames(log)
     channel = "slipd-demo"
-    messages = to_messages(frames, {name: channel for name in frames.channels})
+    messages = to_messages(frames)
     log_start = messages[0].timestamp
     truth_t, truth_beta, truth_vx = _truth(truth_path, log_start)
     profile = load_profile(args.profile or "default")

@@ -42,8 +42,9 @@ class PlayReport:
                 f"max {h.get_max_value()}")
 
 
-def to_messages(frames: Frames, channel_map: dict[str, str] | None = None) -> list:
-    """python-can messages of every non-error frame (error frames cannot be sent)."""
+def to_messages(frames: Frames) -> list:
+    """python-can messages of every non-error frame (error frames cannot be sent), each with
+    the channel it was logged on (BusRouter sends it to the bus that channel maps to)."""
     import can
 
     names = frames.channels
@@ -53,8 +54,6 @@ def to_messages(frames: Frames, channel_map: dict[str, str] | None = None) -> li
         if flags & FLAG_ERROR:
             continue
         name = names[frames.channel[i]] if frames.channel[i] < len(names) else None
-        if channel_map and name is not None:
-            name = channel_map.get(name, name)
         messages.append(can.Message(
             timestamp=float(frames.t[i]), arbitration_id=int(frames.frame_id[i]),
             is_extended_id=bool(flags & FLAG_EXTENDED), is_remote_frame=bool(flags & FLAG_REMOTE),
