@@ -92,8 +92,10 @@ def main() -> None:
                   f"{time.perf_counter() - started:.0f} s")
         size_mb = log.stat().st_size / 1e6
         # warm-up (compile or load the numba cache) on the first frames
-        head = read_candump(log).select(np.arange(len(read_candump(log))) < 1000)
-        run_method(latch_log(head, profile), profile, args.estimator)
+        warm = read_candump(log)
+        run_method(latch_log(warm.select(np.arange(len(warm)) < 1000), profile), profile,
+                   args.estimator)
+        del warm
         timings = []
         for _ in range(3):
             started = time.perf_counter()
