@@ -10,7 +10,7 @@ SYSTEM_CONFIG = Path("/etc/slipd/slipd.toml")
 #: config-file keys (same names as the options, with underscores)
 CONFIG_KEYS = {"profile", "interface", "channel", "estimator", "recorder", "stats_socket",
                "prometheus", "state_file", "sched_fifo", "cpu", "mlockall", "timer_slack_ns",
-               "gc_freeze"}
+               "gc_freeze", "spin_us"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rt.add_argument("--timer-slack-ns", type=int, help="timer slack (1 = none)")
     rt.add_argument("--gc-freeze", action="store_true", default=None,
                     help="freeze and disable the garbage collector")
+    rt.add_argument("--spin-us", type=int, metavar="US",
+                    help="warm the tick's code and poll the bus without sleeping for the last "
+                         "US microseconds before each tick (costs that share of a core)")
     demo = parser.add_argument_group("demo")
     demo.add_argument("--demo", action="store_true",
                       help="run on a python-can virtual bus fed by a simulated drive")
@@ -84,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
         realtime=RealtimeOptions(sched_fifo=int(s["sched_fifo"]), cpu=s.get("cpu"),
                                  mlockall=bool(s["mlockall"]),
                                  timer_slack_ns=s.get("timer_slack_ns"),
-                                 gc_freeze=bool(s["gc_freeze"])),
+                                 gc_freeze=bool(s["gc_freeze"]),
+                                 spin_us=int(s.get("spin_us") or 0)),
         duration=args.duration,
     )
     daemon = Daemon(config)

@@ -121,6 +121,11 @@ class Daemon:
         self._frames = {name: bytearray(8) for name in ("SLIPD_STATE", "SLIPD_AUX",
                                                          "SLIPD_DIAG")}
         self._buffers = {name: np.zeros(8, dtype=np.uint8) for name in self._frames}
+        self._dry_state = self.state.copy()
+        self._dry_u, self._dry_out, self._dry_tx = new_u(), np.zeros(N_OUT), np.zeros(N_TX)
+        self._dry_buffer = np.zeros(8, dtype=np.uint8)
+        self._dry_data = bytearray(8)
+        self.spin = config.realtime.spin_us * 1e-6
         plan = self.codec.inputs
         self.plan_ids = [(plan.frame_id(n), plan.is_extended(n)) for n in plan.message_names]
         self.bus = bus if bus is not None else open_bus(config, self.plan_ids)
@@ -133,6 +138,7 @@ class Daemon:
                                         config.channel) if config.recorder else None)
         self.server = StatsServer(config.stats_socket, config.prometheus)
         self.bus_down_since: float | None = None
+        self._wall_offset = 0.0
         self._next_reopen = 0.0
         self.bus_events: list[str] = []
         self.started_at = 0.0
@@ -144,19 +150,14 @@ class Daemon:
         """Run every kernel once on dummy data so numba has compiled/loaded them (before
         READY=1); returns the seconds it took."""
         started = time.perf_counter()
-        scratch_state = self.method.init(self.vehicle)
-        u = new_u()
-        out = np.zeros(N_OUT)
-        self.method.step(scratch_state, u, self.method.params, self.vehicle, TICK_DT, out)
-        supervise(u, self.required, out)
-        buffer = np.zeros(8, dtype=np.uint8)
         from slipd.codec import kernels
 
+        self._dry_tick(0.0)
+        fill_tx(self.out, self.estimator_id, self.tx)
         plan = self.codec.outputs
-        for name in self._frames:
-            kernels.encode_frame(plan.plan_i, plan.plan_f, plan.message_rows[name], self.tx, 0,
-                                 buffer)
-        fill_tx(out, self.estimator_id, self.tx)
+        buffer = np.zeros(8, dtype=np.uint8)
+        kernels.encode_frame(plan.plan_i, plan.plan_f, plan.message_rows["SLIPD_DIAG"],
+                             self.tx, 0, buffer)
         # decode/sample on a throwaway state, so the real latch and counters stay untouched
         p = self.codec.inputs
         scratch = DecodeState.new(p.n_messages)
@@ -167,8 +168,27 @@ class Daemon:
         kernels.decode_frame(p.plan_i, p.plan_f, p.lookup, 0x7FF, False, 8, payload, 0.0,
                              p.timeouts, scratch.latch, scratch.msg_state, scratch.errors,
                              scratch.scratch)
-        kernels.sample_latch(scratch.latch, self.codec.channel_timeouts, 0.0, u)
+        kernels.sample_latch(scratch.latch, self.codec.channel_timeouts, 0.0, new_u())
         return time.perf_counter() - started
+
+    def _dry_tick(self, t_wall: float) -> None:
+        """The tick's kernels on scratch copies (nothing sent, no counter advanced): warms
+        numba at start and, with a spin window, the caches just before each tick. Measured
+        on this project's VMs: a tick after 9 ms asleep takes 80-160 us against 7 us back to
+        back; the code and data simply are not in the caches any more."""
+        from slipd.codec import kernels
+
+        u, out, tx, buffer = self._dry_u, self._dry_out, self._dry_tx, self._dry_buffer
+        self.codec.sample(t_wall, u)
+        self._dry_state[:] = self.state
+        self.method.step(self._dry_state, u, self.method.params, self.vehicle, TICK_DT, out)
+        supervise(u, self.required, out)
+        fill_tx(out, self.estimator_id, tx)
+        plan = self.codec.outputs
+        for name in ("SLIPD_STATE", "SLIPD_AUX"):
+            kernels.encode_frame(plan.plan_i, plan.plan_f, plan.message_rows[name], tx, 0,
+                                 buffer)
+            self._dry_data[:] = buffer.tobytes()
 
     def restore_state(self) -> str:
         values, message = self.store.load(self.config.estimator, len(self.state))
@@ -201,11 +221,18 @@ class Daemon:
     def _receive_until(self, deadline: float) -> None:
         """Receive and decode frames until ``deadline``. A tick that is already late still
         takes what the socket has queued (at most LATE_DRAIN_MAX frames), so after an overrun
-        the tick latches the newest inputs instead of starving them."""
+        the tick latches the newest inputs instead of starving them.
+
+        With a spin window (``RealtimeOptions.spin_us``) the wait ends ``spin`` seconds early:
+        a dry run of the tick warms the caches, then the socket is polled without sleeping
+        until the deadline, so the tick starts on time and hot."""
         recv = self.bus.recv
         late_frames = 0
+        spin_from = deadline - self.spin
+        warmed = self.spin <= 0.0
         while True:
-            remaining = deadline - time.monotonic()
+            now = time.monotonic()
+            remaining = deadline - now
             if self.bus_down_since is not None:
                 self._try_reopen(deadline)
                 return
@@ -213,8 +240,17 @@ class Daemon:
                 if late_frames >= LATE_DRAIN_MAX:
                     return
                 late_frames += 1
+                timeout = 0.0
+            elif now < spin_from:
+                timeout = spin_from - now
+            else:
+                if not warmed:
+                    warmed = True
+                    self._dry_tick(round((deadline + self._wall_offset) * 1e6) / 1e6)
+                    continue
+                timeout = 0.0
             try:
-                message = recv(timeout=max(remaining, 0.0))
+                message = recv(timeout=timeout)
             except (self.can.CanOperationError, OSError) as exc:
                 self._bus_failed(exc)
                 continue
@@ -352,7 +388,7 @@ class Daemon:
         stats = self.stats
         monotonic = time.monotonic
         self.started_at = monotonic()
-        wall_offset = time.time() - monotonic()
+        wall_offset = self._wall_offset = time.time() - monotonic()
         next_tick = self.started_at + TICK_DT
         end = self.started_at + config.duration if config.duration else math.inf
         next_second = self.started_at + 1.0

@@ -60,6 +60,9 @@ class RealtimeOptions:
     mlockall: bool = False
     timer_slack_ns: int | None = None
     gc_freeze: bool = False
+    # us before each tick from which the loop polls the socket without sleeping, after a dry
+    # run of the tick on scratch arrays (0 = sleep until the tick). See Daemon._receive_until.
+    spin_us: int = 0
 
 
 def apply_realtime(options: RealtimeOptions) -> list[str]:
@@ -101,6 +104,12 @@ def apply_realtime(options: RealtimeOptions) -> list[str]:
         gc.freeze()
         gc.disable()
         report.append("gc frozen and disabled (no collector pauses in the loop)")
+    if options.spin_us:
+        if not 0 < options.spin_us < 5000:
+            raise ConfigError(f"spin window {options.spin_us} us: expected 1..4999 us "
+                              "(a tick is 10,000 us)")
+        report.append(f"tick warmed and polled for the last {options.spin_us} us before it "
+                      f"(one core busy {options.spin_us / 100:.0f} % of the time)")
     return report or ["no real-time settings (best effort scheduling)"]
 
 
