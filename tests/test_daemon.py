@@ -6,6 +6,8 @@ import json
 import os
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 import urllib.request
@@ -263,3 +265,37 @@ def test_sigterm_saves_learned_offsets_and_a_restart_restores_them(tmp_path):
     restarted.bus.shutdown()
     feeder_bus.shutdown()
 
+
+def test_compiler_pages_are_released_and_kernels_still_run_and_compile():
+    """After release_compiler_pages, libllvmlite's pages are out of the resident set, cached
+    kernels still run, and a new kernel still compiles (its pages fault back in)."""
+    script = """
+import numba, numpy as np
+from pathlib import Path
+from slipd.daemon.service import release_compiler_pages, _smaps_entries
+
+def llvm_rss_kb():
+    return sum(f.get("Rss", 0) for *_, path, f in _smaps_entries(Path("/proc/self/smaps")
+               .read_text()) if path.endswith("libllvmlite.so"))
+
+@numba.njit
+def first(a):
+    return a.sum()
+
+assert first(np.ones(4)) == 4.0
+before = llvm_rss_kb()
+released = release_compiler_pages()
+after = llvm_rss_kb()
+
+@numba.njit
+def second(a):
+    return a.max() + 1.0
+
+print(before, after, released // 1024, first(np.ones(3)), second(np.arange(3.0)))
+"""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            timeout=300, check=True)
+    before, after, released, first, second = result.stdout.split()
+    assert int(before) > 20_000 and int(released) > 20_000
+    assert int(after) < int(before) - 20_000
+    assert float(first) == 3.0 and float(second) == 3.0

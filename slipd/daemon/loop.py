@@ -25,7 +25,13 @@ from slipd.codec import N_TX, Codec, DecodeState, Tx
 from slipd.codec.kernels import LATCH_SET, LATCH_TIME
 from slipd.codec.tx import fill_tx
 from slipd.daemon.recorder import FlightRecorder
-from slipd.daemon.service import RealtimeOptions, StateStore, SystemdNotifier, apply_realtime
+from slipd.daemon.service import (
+    RealtimeOptions,
+    StateStore,
+    SystemdNotifier,
+    apply_realtime,
+    release_compiler_pages,
+)
 from slipd.daemon.stats import Stats, StatsServer
 from slipd.estimators import base
 from slipd.estimators.supervision import required_mask, supervise
@@ -376,8 +382,10 @@ class Daemon:
             self.log(f"slipd: real-time: {line}")
         self.log(f"slipd: {self.restore_state()}")
         warm = self.warm_up()
+        released = release_compiler_pages()
         self.log(f"slipd: estimator {config.estimator} on {config.interface}:{config.channel}"
-                 f", numba warm-up {warm * 1e3:.0f} ms")
+                 f", numba warm-up {warm * 1e3:.0f} ms, {released / 2**20:.0f} MB of LLVM "
+                 "code released from memory")
         previous_handlers = {}
         if threading.current_thread() is threading.main_thread():
             for signum in (signal.SIGTERM, signal.SIGINT):

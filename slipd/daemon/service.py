@@ -23,6 +23,9 @@ from slipd.errors import ConfigError
 
 PR_SET_TIMERSLACK = 29
 MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT = 1, 2, 4
+MADV_DONTNEED = 4
+#: shared objects only needed to compile or load kernels, not to run them
+COMPILER_LIBRARIES = ("libllvmlite.so",)
 
 
 class SystemdNotifier:
@@ -111,6 +114,56 @@ def apply_realtime(options: RealtimeOptions) -> list[str]:
         report.append(f"tick warmed and polled for the last {options.spin_us} us before it "
                       f"(one core busy {options.spin_us / 100:.0f} % of the time)")
     return report or ["no real-time settings (best effort scheduling)"]
+
+
+def release_compiler_pages(libraries: tuple[str, ...] = COMPILER_LIBRARIES) -> int:
+    """Drop LLVM's code pages from the resident set once every kernel is loaded; returns
+    the bytes released.
+
+    numba needs LLVM to compile a kernel or load it from the cache, never to run it: the
+    compiled code lives in anonymous memory of its own and calls numba's helpers, not LLVM.
+    Loading the cache touches ~68 MB of libllvmlite's code and read-only data, which would
+    otherwise stay resident (and locked, under mlockall) for the life of the daemon.
+    Only file-backed mappings that are not writable and hold no private (copied-on-write)
+    page are released, so every dropped page is an unmodified page of the file: the page
+    cache keeps it, and it faults back in should anything compile later. Locked mappings
+    are unlocked first (madvise refuses locked pages); those pages are not locked again.
+    """
+    try:
+        smaps = Path("/proc/self/smaps").read_text()
+    except OSError:
+        return 0
+    libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    libc.munlock.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+    libc.madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    released = 0
+    for start, end, perms, path, fields in _smaps_entries(smaps):
+        if "w" in perms or not path.endswith(libraries) or fields.get("Anonymous", 1) != 0:
+            continue
+        length = end - start
+        if fields.get("Locked", 0):
+            libc.munlock(start, length)
+        if libc.madvise(start, length, MADV_DONTNEED) == 0:
+            released += fields.get("Rss", 0) * 1024
+    return released
+
+
+def _smaps_entries(smaps: str):
+    """(start, end, perms, path, {field: kB}) per mapping of a /proc/PID/smaps text."""
+    entry = None
+    for line in smaps.splitlines():
+        head, _, rest = line.partition(" ")
+        if "-" in head and not head.endswith(":"):
+            if entry is not None:
+                yield entry
+            parts = line.split(None, 5)
+            low, high = head.split("-")
+            entry = (int(low, 16), int(high, 16), parts[1],
+                     parts[5].strip() if len(parts) > 5 else "", {})
+        elif entry is not None and rest.endswith("kB"):
+            entry[4][head.rstrip(":")] = int(rest.split()[0])
+    if entry is not None:
+        yield entry
 
 
 class StateStore:
