@@ -124,6 +124,7 @@ class Daemon:
         self.on_second = on_second
         self.running = False
         self.last_status = 0
+        self.steps = 1  # estimator steps at the next tick (base.catch_up_steps)
         self._frames = {name: bytearray(8) for name in ("SLIPD_STATE", "SLIPD_AUX",
                                                          "SLIPD_DIAG")}
         self._buffers = {name: np.zeros(8, dtype=np.uint8) for name in self._frames}
@@ -324,7 +325,9 @@ class Daemon:
         """One cycle's work after the wake-up: latch -> step -> supervise -> encode -> send."""
         codec, u, out, tx = self.codec, self.u, self.out, self.tx
         codec.sample(t_wall, u)
-        self.method.step(self.state, u, self.method.params, self.vehicle, TICK_DT, out)
+        for _ in range(self.steps):  # more than one after skipped ticks (base.catch_up_steps)
+            self.method.step(self.state, u, self.method.params, self.vehicle, TICK_DT, out)
+        self.steps = 1
         supervise(u, self.required, out)
         if self.bus_down_since is not None:
             out[Out.STATUS] = float((int(out[Out.STATUS]) & ~ST_VALID) | ST_INPUT_TIMEOUT)
@@ -428,6 +431,7 @@ class Daemon:
                     stats.counters["deadline_misses"] += 1 + behind
                     stats.interval_misses += 1 + behind
                     next_tick += behind * TICK_DT
+                    self.steps = base.catch_up_steps(behind)
                 # Slack work, after this tick's frames are out.
                 if sent >= next_second:
                     rejected = self._second(rejected)

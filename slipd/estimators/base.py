@@ -17,6 +17,12 @@ Every method lives in its own module ``slipd/estimators/<name>.py`` and exposes:
     It lives beside ``step`` because numba cannot cache a kernel that takes another jitted
     function as an argument or closes over one (measured: it recompiles in every process).
 
+Time advances by ``dt`` per step, always: a tick that comes after ticks the daemon skipped
+(an overrun) runs ``step`` once per elapsed tick on its inputs (at most
+``1 + MAX_CATCH_UP_TICKS`` times), so the integrators see the time that passed and every
+discrete filter keeps the step it was designed for; the batch engine does the same on a
+recording's ticks (:func:`steps_per_tick`).
+
 A method writes ``Status.NOT_CONVERGED`` until it has settled, ``Status.UNAVAILABLE`` when a
 sensor it needs is absent (it never invents the data), ``Status.RESET`` on the tick it resets
 itself. The daemon and the batch engine add the input-supervision bits and decide VALID.
@@ -69,6 +75,25 @@ class Method:
 
     def init(self, vehicle: np.ndarray) -> np.ndarray:
         return self.module.init(self.params, vehicle)
+
+
+#: skipped ticks made up for at the next tick (1 s); after a longer stall the inputs have
+#: timed out and the method is holding anyway.
+MAX_CATCH_UP_TICKS = 100
+
+
+def catch_up_steps(skipped_ticks: int) -> int:
+    """Estimator steps at a tick that follows ``skipped_ticks`` skipped ones."""
+    return 1 + min(max(skipped_ticks, 0), MAX_CATCH_UP_TICKS)
+
+
+def steps_per_tick(tick_time: np.ndarray, dt: float) -> np.ndarray:
+    """:func:`catch_up_steps` for each of a run's tick times (the first takes one step)."""
+    steps = np.ones(len(tick_time), dtype=np.int64)
+    if len(tick_time) > 1:
+        skipped = np.rint(np.diff(tick_time) / dt).astype(np.int64) - 1
+        steps[1:] = 1 + np.clip(skipped, 0, MAX_CATCH_UP_TICKS)
+    return steps
 
 
 def available() -> list[str]:

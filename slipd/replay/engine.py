@@ -35,6 +35,9 @@ class Inputs:
     U: np.ndarray  # [n_ticks, U_LEN]
     errors: dict[str, dict[str, int]]
     n_frames: int
+    #: estimator steps per tick (base.steps_per_tick: more than one after ticks the daemon
+    #: skipped in a recording); None = one each
+    steps: np.ndarray | None = None
 
 
 @dataclass
@@ -100,7 +103,11 @@ def latch_log_or_recording(frames: Frames, profile: Profile) -> Inputs:
     if recorded is None:
         return latch_log(frames, profile)
     inputs, tick_time, tick_until = recorded
-    return latch_log(inputs, profile, tick_time, tick_until=tick_until)
+    latched = latch_log(inputs, profile, tick_time, tick_until=tick_until)
+    steps = base.steps_per_tick(tick_time, TICK_DT)
+    if np.any(steps > 1):
+        latched.steps = steps
+    return latched
 
 
 def run_method(inputs: Inputs, profile: Profile, name: str,
@@ -108,8 +115,13 @@ def run_method(inputs: Inputs, profile: Profile, name: str,
     """Run method ``name`` over latched inputs; returns its supervised outputs."""
     method = base.load(name, overrides)
     state = method.init(profile.vehicle)
-    out = np.zeros((len(inputs.t), N_OUT))
-    method.run_ticks(state, inputs.U, method.params, profile.vehicle, dt, out)
+    U = inputs.U
+    if inputs.steps is not None:  # a tick after skipped ones steps once per elapsed tick
+        U = np.repeat(U, inputs.steps, axis=0)
+    out = np.zeros((len(U), N_OUT))
+    method.run_ticks(state, U, method.params, profile.vehicle, dt, out)
+    if inputs.steps is not None:
+        out = np.ascontiguousarray(out[np.cumsum(inputs.steps) - 1])
     supervise_ticks(inputs.U, required_mask(base.required_channels(method, profile)), out)
     return Estimate(name, inputs.t, out)
 
