@@ -201,8 +201,11 @@ def print_result(result: dict, duration: float) -> None:
           f"max {cycle['max']}")
     print(f"  compute us: p50 {compute['p50']} p99 {compute['p99']}; wake-up lateness us: "
           f"p50 {wake['p50']} p99 {wake['p99']} max {wake['max']}")
+    gc_pause = snap["gc_pause_us"]
     print(f"  deadline misses {counters['deadline_misses']}, tx errors {counters['tx_errors']}, "
-          f"input timeouts {counters['input_timeouts']}")
+          f"input timeouts {counters['input_timeouts']}; gc pauses {gc_pause['count']} "
+          f"(p99 {gc_pause['p99']} us, max {gc_pause['max']} us, "
+          f"{counters['gc_full_collections']} full)")
     print(f"  CPU {fig['cpu_percent']:.1f} % of one core, RSS {fig['rss_mb']:.0f} MB (peak "
           f"{fig['rss_peak_mb']:.0f} MB; anonymous {fig['rss_anon_mb']:.0f} MB, file-backed "
           f"{fig['rss_file_mb']:.0f} MB), page faults while measured {fig['faults_in_run']}, "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import signal
@@ -73,6 +74,7 @@ def _run(tmp_path, channel, seconds, estimator="zero", spin_us=0, stall_s=0.0, *
 
     def stall_once(_daemon):  # an overrun in the slack work after a tick (1 s after start)
         if stalls:
+            gc.collect()  # a full collection, which the gc_pause_us histogram must show
             time.sleep(stalls.pop())
 
     daemon = Daemon(config, bus=daemon_bus, log=lambda *_: None, on_second=stall_once)
@@ -133,6 +135,7 @@ def test_state_frames_at_100_hz_and_recorder_replays_byte_for_byte(tmp_path, est
     assert np.all(np.abs(gaps - np.round(gaps)) < 2e-4) and np.all(np.round(gaps) >= 1)
     if stall_s:  # the stall skipped ticks: the replay below must step through them too
         assert counters["deadline_misses"] >= 4 and np.max(np.round(gaps)) >= 5
+        assert counters["gc_full_collections"] >= 1 and final["gc_pause_us"]["count"] >= 1
     # the recorder log, replayed, gives the same SLIPD_STATE/AUX bytes
     inputs = latch_log_or_recording(frames, PROFILE)
     estimate = run_method(inputs, PROFILE, estimator)

@@ -21,8 +21,12 @@ def _table(snapshot: dict) -> str:
              f"{snapshot.get('beta_deg', 0):+.2f} deg, status {snapshot.get('status', 0):#04x}, "
              f"up {snapshot.get('uptime_s', 0):.0f} s",
              f"{'histogram (us)':<22}{'count':>9}{'p50':>8}{'p99':>8}{'p99.9':>8}{'max':>8}"]
-    for name in ("cycle_latency_us", "compute_us", "input_age_us", "wakeup_lateness_us"):
-        h = snapshot[name]
+    from slipd.daemon.stats import HISTOGRAMS
+
+    for name in HISTOGRAMS:
+        h = snapshot.get(name)
+        if h is None:  # a daemon of an older version
+            continue
         lines.append(f"{name:<22}{h['count']:>9}{h['p50']:>8}{h['p99']:>8}{h['p99.9']:>8}"
                      f"{h['max']:>8}")
     lines.append("counters: " + ", ".join(f"{k} {v}" for k, v in c.items()))

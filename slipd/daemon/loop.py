@@ -10,6 +10,7 @@ busy Python thread delays every cycle by ~5 ms here (shared/notes/realtime-pytho
 
 from __future__ import annotations
 
+import gc
 import math
 import signal
 import threading
@@ -125,6 +126,7 @@ class Daemon:
         self.running = False
         self.last_status = 0
         self.steps = 1  # estimator steps at the next tick (base.catch_up_steps)
+        self._gc_started = 0.0
         self._frames = {name: bytearray(8) for name in ("SLIPD_STATE", "SLIPD_AUX",
                                                          "SLIPD_DIAG")}
         self._buffers = {name: np.zeros(8, dtype=np.uint8) for name in self._frames}
@@ -375,6 +377,16 @@ class Daemon:
         self.stats.decode_errors = self.codec.error_counts()
         return self.stats.snapshot(extra)
 
+    def _on_gc(self, phase: str, info: dict) -> None:
+        """gc.callbacks hook: every collector pause into the gc_pause_us histogram, so a
+        stall in a run without --gc-freeze can be told apart from the machine's."""
+        if phase == "start":
+            self._gc_started = time.perf_counter()
+            return
+        self.stats.record("gc_pause_us", (time.perf_counter() - self._gc_started) * 1e6)
+        if info.get("generation") == 2:
+            self.stats.counters["gc_full_collections"] += 1
+
     def request_stop(self, *_args) -> None:
         self.running = False
 
@@ -393,6 +405,7 @@ class Daemon:
         if threading.current_thread() is threading.main_thread():
             for signum in (signal.SIGTERM, signal.SIGINT):
                 previous_handlers[signum] = signal.signal(signum, self.request_stop)
+        gc.callbacks.append(self._on_gc)
         self.notifier.notify("READY=1\nSTATUS=running")
         self.running = True
         self.ready.set()
@@ -444,6 +457,7 @@ class Daemon:
                     self.save_state()
                     next_persist += PERSIST_INTERVAL
         finally:
+            gc.callbacks.remove(self._on_gc)
             self.save_state()
             for signum, handler in previous_handlers.items():
                 signal.signal(signum, handler)

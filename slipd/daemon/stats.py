@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 from hdrh.histogram import HdrHistogram
 
-HISTOGRAMS = ("cycle_latency_us", "compute_us", "input_age_us", "wakeup_lateness_us")
+HISTOGRAMS = ("cycle_latency_us", "compute_us", "input_age_us", "wakeup_lateness_us",
+              "gc_pause_us")
 
 
 def _histogram() -> HdrHistogram:
@@ -29,7 +30,7 @@ class Stats:
     interval: HdrHistogram = field(default_factory=_histogram)  # cycle latency, last second
     counters: dict[str, int] = field(default_factory=lambda: {
         "ticks": 0, "deadline_misses": 0, "input_timeouts": 0, "tx_errors": 0,
-        "rx_frames": 0, "valid_ticks": 0})
+        "rx_frames": 0, "valid_ticks": 0, "gc_full_collections": 0})
     rx_per_id: dict[int, int] = field(default_factory=dict)
     decode_errors: dict[str, dict[str, int]] = field(default_factory=dict)
     interval_misses: int = 0
