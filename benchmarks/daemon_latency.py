@@ -4,9 +4,9 @@
 the profile's rates plus unrelated IDs up to ``--rate`` frames/s (4,000/s is a 500 kbit/s bus
 at ~70 % load with 8-byte frames); this process listens to the daemon's output frames. Each
 mode is run in turn: ``plain`` (no real-time settings) and ``realtime`` (SCHED_FIFO 50,
-mlockall, timer slack 1 ns, gc freeze, a 300 us spin window before each tick, daemon pinned to
-the last CPU, feeder to the first). RSS is the daemon's resident set while it runs (after
-start-up); the peak, reached while numba loads its kernels, is printed beside it.
+mlockall, timer slack 1 ns, gc freeze, ``--spin-us`` before each tick if given,
+daemon pinned to the last CPU, feeder to the first). RSS is the daemon's resident set while it
+runs (after start-up); the peak, reached while numba loads its kernels, is printed beside it.
 
 Interface: ``slipd_unix`` (default; slipd.daemon.unixbus, unix datagram sockets between the
 processes: this machine kind has no vcan and python-can's virtual bus is in-process only) or
@@ -33,8 +33,7 @@ import numpy as np
 TARGETS = {"deadline misses": 0, "cycle p99 us": 300, "RSS MB": 150, "warm start s": 2.0}
 MODES = {
     "plain": [],
-    "realtime": ["--sched-fifo", "50", "--mlockall", "--timer-slack-ns", "1", "--gc-freeze",
-                 "--spin-us", "300"],
+    "realtime": ["--sched-fifo", "50", "--mlockall", "--timer-slack-ns", "1", "--gc-freeze"],
 }
 
 
@@ -149,6 +148,8 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     command = [str(Path(sys.executable).with_name("slipd")), "run", "--interface", args.interface,
                "--channel", channel, "--estimator", args.estimator, "--stats-socket",
                stats_socket, "--duration", str(args.duration + 3.0), *MODES[mode]]
+    if realtime and args.spin_us:
+        command += ["--spin-us", str(args.spin_us)]
     if realtime and n_cpu > 1:
         command += ["--cpu", str(n_cpu - 1)]
     started = time.monotonic()
@@ -225,6 +226,9 @@ def main() -> None:
     parser.add_argument("--modes", default="plain,realtime")
     parser.add_argument("--interface", default="slipd_unix")
     parser.add_argument("--channel", help="bus channel (slipd_unix: a fresh directory)")
+    parser.add_argument("--spin-us", type=int, default=0,
+                        help="realtime mode's spin window before each tick (default 0: sleep "
+                             "to it; 300 measured lower p50, higher p99 here)")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
     args = parser.parse_args()
     workdir = Path(tempfile.mkdtemp(prefix="slipd-latency-"))
