@@ -44,6 +44,7 @@ PERSIST_INTERVAL = 60.0  # s
 LATE_DRAIN_MAX = 64  # frames taken from the socket queue before a tick that is already late
 SOCKET_RECEIVE_BUFFER = 1 << 20  # bytes: ~1 s of a full bus queued while the loop is busy
 IFF_UP = 0x1
+OUTPUT_MESSAGES = ("SLIPD_STATE", "SLIPD_AUX", "SLIPD_DIAG")
 
 
 @dataclass
@@ -127,13 +128,10 @@ class Daemon:
         self.last_status = 0
         self.steps = 1  # estimator steps at the next tick (base.catch_up_steps)
         self._gc_started = 0.0
-        self._frames = {name: bytearray(8) for name in ("SLIPD_STATE", "SLIPD_AUX",
-                                                         "SLIPD_DIAG")}
-        self._buffers = {name: np.zeros(8, dtype=np.uint8) for name in self._frames}
+        self._buffers = {name: np.zeros(8, dtype=np.uint8) for name in OUTPUT_MESSAGES}
         self._dry_state = self.state.copy()
         self._dry_u, self._dry_out, self._dry_tx = new_u(), np.zeros(N_OUT), np.zeros(N_TX)
         self._dry_buffer = np.zeros(8, dtype=np.uint8)
-        self._dry_data = bytearray(8)
         self.spin = config.realtime.spin_us * 1e-6
         plan = self.codec.inputs
         self.plan_ids = [(plan.frame_id(n), plan.is_extended(n)) for n in plan.message_names]
@@ -142,7 +140,7 @@ class Daemon:
         outputs = self.codec.outputs
         self._messages = {name: can.Message(arbitration_id=outputs.frame_id(name),
                                             is_extended_id=False, data=bytes(8))
-                          for name in self._frames}
+                          for name in OUTPUT_MESSAGES}
         self.recorder = (FlightRecorder(config.recorder, config.recorder_max_bytes,
                                         config.channel) if config.recorder else None)
         self.server = StatsServer(config.stats_socket, config.prometheus)
@@ -161,13 +159,8 @@ class Daemon:
         started = time.perf_counter()
         from slipd.codec import kernels
 
-        self._dry_tick(0.0)
-        fill_tx(self.out, self.estimator_id, self.tx)
-        plan = self.codec.outputs
-        buffer = np.zeros(8, dtype=np.uint8)
-        kernels.encode_frame(plan.plan_i, plan.plan_f, plan.message_rows["SLIPD_DIAG"],
-                             self.tx, 0, buffer)
-        # decode/sample on a throwaway state, so the real latch and counters stay untouched
+        self._dry_tick(0.0)  # sample, step, supervise, fill_tx, encode
+        # decode on a throwaway state, so the real latch and counters stay untouched
         p = self.codec.inputs
         scratch = DecodeState.new(p.n_messages)
         # a read-only payload, as Codec.decode makes from a received frame's bytes: numba
@@ -177,7 +170,6 @@ class Daemon:
         kernels.decode_frame(p.plan_i, p.plan_f, p.lookup, 0x7FF, False, 8, payload, 0.0,
                              p.timeouts, scratch.latch, scratch.msg_state, scratch.errors,
                              scratch.scratch)
-        kernels.sample_latch(scratch.latch, self.codec.channel_timeouts, 0.0, new_u())
         return time.perf_counter() - started
 
     def _dry_tick(self, t_wall: float) -> None:
@@ -187,17 +179,12 @@ class Daemon:
         back; the code and data simply are not in the caches any more."""
         from slipd.codec import kernels
 
-        u, out, tx, buffer = self._dry_u, self._dry_out, self._dry_tx, self._dry_buffer
-        self.codec.sample(t_wall, u)
         self._dry_state[:] = self.state
-        self.method.step(self._dry_state, u, self.method.params, self.vehicle, TICK_DT, out)
-        supervise(u, self.required, out)
-        fill_tx(out, self.estimator_id, tx)
+        self._estimate(t_wall, self._dry_state, self._dry_u, self._dry_out, self._dry_tx, 1)
         plan = self.codec.outputs
-        for name in ("SLIPD_STATE", "SLIPD_AUX"):
-            kernels.encode_frame(plan.plan_i, plan.plan_f, plan.message_rows[name], tx, 0,
-                                 buffer)
-            self._dry_data[:] = buffer.tobytes()
+        for name in OUTPUT_MESSAGES:
+            kernels.encode_frame(plan.plan_i, plan.plan_f, plan.message_rows[name],
+                                 self._dry_tx, 0, self._dry_buffer)
 
     def restore_state(self) -> str:
         values, message = self.store.load(self.config.estimator, len(self.state))
@@ -323,17 +310,23 @@ class Daemon:
         if self.recorder is not None:
             self.recorder.frame(t_record, message.arbitration_id, False, message.data, rx=False)
 
-    def tick(self, t_wall: float) -> None:
-        """One cycle's work after the wake-up: latch -> step -> supervise -> encode -> send."""
-        codec, u, out, tx = self.codec, self.u, self.out, self.tx
-        codec.sample(t_wall, u)
-        for _ in range(self.steps):  # more than one after skipped ticks (base.catch_up_steps)
-            self.method.step(self.state, u, self.method.params, self.vehicle, TICK_DT, out)
-        self.steps = 1
+    def _estimate(self, t_wall: float, state: np.ndarray, u: np.ndarray, out: np.ndarray,
+                  tx: np.ndarray, steps: int) -> None:
+        """Latch -> ``steps`` estimator steps -> supervise -> output slots, on the live arrays
+        (tick) or on scratch copies (_dry_tick)."""
+        self.codec.sample(t_wall, u)
+        for _ in range(steps):  # more than one after skipped ticks (base.catch_up_steps)
+            self.method.step(state, u, self.method.params, self.vehicle, TICK_DT, out)
         supervise(u, self.required, out)
         if self.bus_down_since is not None:
             out[Out.STATUS] = float((int(out[Out.STATUS]) & ~ST_VALID) | ST_INPUT_TIMEOUT)
         fill_tx(out, self.estimator_id, tx)
+
+    def tick(self, t_wall: float) -> None:
+        """One cycle's work after the wake-up: latch -> step -> supervise -> encode -> send."""
+        out = self.out
+        self._estimate(t_wall, self.state, self.u, out, self.tx, self.steps)
+        self.steps = 1
         self._send("SLIPD_STATE", t_wall)
         self._send("SLIPD_AUX", t_wall)
         status = int(out[Out.STATUS])
@@ -444,7 +437,7 @@ class Daemon:
                     stats.counters["deadline_misses"] += 1 + behind
                     stats.interval_misses += 1 + behind
                     next_tick += behind * TICK_DT
-                    self.steps = base.catch_up_steps(behind)
+                    self.steps = int(base.catch_up_steps(behind))
                 # Slack work, after this tick's frames are out.
                 if sent >= next_second:
                     rejected = self._second(rejected)

@@ -82,17 +82,17 @@ class Method:
 MAX_CATCH_UP_TICKS = 100
 
 
-def catch_up_steps(skipped_ticks: int) -> int:
-    """Estimator steps at a tick that follows ``skipped_ticks`` skipped ones."""
-    return 1 + min(max(skipped_ticks, 0), MAX_CATCH_UP_TICKS)
+def catch_up_steps(skipped_ticks):
+    """Estimator steps at a tick that follows ``skipped_ticks`` skipped ones (an int, or an
+    array of them)."""
+    return 1 + np.clip(skipped_ticks, 0, MAX_CATCH_UP_TICKS)
 
 
 def steps_per_tick(tick_time: np.ndarray, dt: float) -> np.ndarray:
     """:func:`catch_up_steps` for each of a run's tick times (the first takes one step)."""
     steps = np.ones(len(tick_time), dtype=np.int64)
     if len(tick_time) > 1:
-        skipped = np.rint(np.diff(tick_time) / dt).astype(np.int64) - 1
-        steps[1:] = 1 + np.clip(skipped, 0, MAX_CATCH_UP_TICKS)
+        steps[1:] = catch_up_steps(np.rint(np.diff(tick_time) / dt).astype(np.int64) - 1)
     return steps
 
 
