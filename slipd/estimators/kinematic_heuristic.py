@@ -551,16 +551,21 @@ def step(state, u, params, vehicle, dt, out):
     if steady_gain > 0.0:
         steady_cutoff = params[PARAMS.STEADY_CUTOFF_HZ]
         residual = ay_raw - yaw_rate * vx_meas
-        x = pp.derivative_filter(state, _D_STEADY_YAW, yaw_rate, dt, steady_cutoff)
-        y = pp.derivative_filter(state, _D_STEADY_STEER, steer_wheel, dt, steady_cutoff)
-        z = pp.derivative_filter(state, _D_STEADY_RESIDUAL, residual, dt, steady_cutoff)
-        x /= params[PARAMS.SIGMA_STEADY_YAW_ACC]
-        y /= params[PARAMS.SIGMA_STEADY_STEER_RATE]
-        z /= params[PARAMS.SIGMA_STEADY_JERK]
-        w = 0.0
+        yaw_acc_slow = pp.derivative_filter(state, _D_STEADY_YAW, yaw_rate, dt, steady_cutoff)
+        steer_rate_slow = pp.derivative_filter(state, _D_STEADY_STEER, steer_wheel, dt,
+                                               steady_cutoff)
+        residual_rate = pp.derivative_filter(state, _D_STEADY_RESIDUAL, residual, dt,
+                                             steady_cutoff)
+        countersteer = 0.0
         if params[PARAMS.STEADY_COUNTERSTEER] > 0.0 and steer_wheel * yaw_rate < 0.0:
-            w = steer_wheel / params[PARAMS.SIGMA_STEER]
-        steady_now = math.exp(-0.5 * (x * x + y * y + z * z + w * w))
+            countersteer = steer_wheel
+        steady_now = pp.gaussian_bell(
+            yaw_acc_slow, params[PARAMS.SIGMA_STEADY_YAW_ACC],
+            steer_rate_slow, params[PARAMS.SIGMA_STEADY_STEER_RATE],
+        ) * pp.gaussian_bell(
+            residual_rate, params[PARAMS.SIGMA_STEADY_JERK],
+            countersteer, params[PARAMS.SIGMA_STEER],
+        )
         if not math.isfinite(steady_now) or not have_vx or vx_meas < min_speed:
             steady_now = 0.0
         rise_time = params[PARAMS.STEADY_RISE_TIME]
