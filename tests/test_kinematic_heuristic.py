@@ -403,10 +403,17 @@ def _simulate(scenario: str, duration: float | None = None):
     return sim.simulate(scenario, vehicle=2, seed=0, duration=duration)
 
 
-def _beta_error_deg(result, overrides=None) -> tuple[np.ndarray, np.ndarray]:
-    """(estimate - truth) in deg on the ticks where the truth speed exceeds 20 km/h, and OUT."""
+def _beta_error_deg(result, overrides=None, method: str | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(estimate - truth) in deg on the ticks where the truth speed exceeds 20 km/h, and OUT;
+    of kinematic_heuristic, or of registered ``method``."""
     U = result.ticks()
-    OUT = run(U, overrides)
+    if method is None:
+        OUT = run(U, overrides)
+    else:
+        other, vehicle = load(method, overrides), bmw_vehicle()
+        OUT = np.zeros((U.shape[0], N_OUT))
+        other.run_ticks(other.init(vehicle), U, other.params, vehicle, DT, OUT)
     n = min(len(U), len(result.truth["t"]))
     fast = result.truth["speed"][:n] > 20.0 / 3.6
     err = np.degrees(OUT[:n, Out.BETA] - result.truth["beta"][:n])
@@ -425,14 +432,7 @@ def test_heuristic_holds_beta_on_straight_with_offsets_where_pure_kinematics_dri
     assert np.max(np.abs(err_heuristic)) < 0.4
     assert np.max(np.abs(err_kinematic)) > 4.0 * np.max(np.abs(err_heuristic))
     assert np.max(np.abs(err_kinematic)) > 1.5
-    k_kf = load("k_kf")
-    U = result.ticks()
-    vehicle = bmw_vehicle()
-    out = np.zeros((len(U), N_OUT))
-    k_kf.run_ticks(k_kf.init(vehicle), U, k_kf.params, vehicle, DT, out)
-    n = min(len(U), len(result.truth["t"]))
-    fast = result.truth["speed"][:n] > 20.0 / 3.6
-    err_k_kf = np.degrees(out[:n, Out.BETA] - result.truth["beta"][:n])[fast]
+    err_k_kf, _ = _beta_error_deg(result, method="k_kf")
     assert np.nanmax(np.abs(err_k_kf)) > 4.0 * np.max(np.abs(err_heuristic))
 
 
