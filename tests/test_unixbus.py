@@ -4,6 +4,7 @@ benchmark to feed the daemon from another process on machines without vcan."""
 from __future__ import annotations
 
 import os
+import time
 
 import can
 import pytest
@@ -75,3 +76,49 @@ def test_a_full_receiver_loses_frames_and_the_sender_counts_them(bus_dir):
     finally:
         sender.shutdown()
         receiver.shutdown()
+
+
+def test_filters_act_at_the_sender_like_kernel_filters(bus_dir):
+    """A receiver is not even sent the frames its filters reject (as SocketCAN filters in the
+    kernel), including after it changes its filters; python-can's own rule decides."""
+    standard_only = [{"can_id": 0x100, "can_mask": 0x7F0, "extended": False}]
+    receiver = can.Bus(interface="slipd_unix", channel=bus_dir, can_filters=standard_only)
+    sender = can.Bus(interface="slipd_unix", channel=bus_dir)
+    frames = [can.Message(arbitration_id=i, data=b"\x00", is_extended_id=ext)
+              for i, ext in ((0x100, False), (0x10F, False), (0x110, False), (0x100, True),
+                             (0x7FF, False))]
+
+    def raw_ids() -> list[tuple[int, bool]]:
+        """What reached the socket, read below python-can's software filter."""
+        got = []
+        while True:
+            try:
+                datagram = receiver.socket.recv(100)
+            except BlockingIOError:
+                return got
+            message = receiver._decode(datagram, 0.0)
+            got.append((message.arbitration_id, message.is_extended_id))
+
+    try:
+        for frame in frames:
+            sender.send(frame)
+        expected = [(f.arbitration_id, f.is_extended_id) for f in frames
+                    if receiver._matches_filters(f)]
+        assert expected == [(0x100, False), (0x10F, False)]
+        assert raw_ids() == expected
+
+        receiver.set_filters([{"can_id": 0x7FF, "can_mask": 0x7FF}])  # either ID format
+        time.sleep(0.25)  # past the sender's peer refresh interval
+        for frame in frames:
+            sender.send(frame)
+        assert raw_ids() == [(0x7FF, False)]
+
+        receiver.set_filters(None)  # no filters: everything
+        time.sleep(0.25)
+        for frame in frames:
+            sender.send(frame)
+        assert len(raw_ids()) == len(frames)
+    finally:
+        sender.shutdown()
+        receiver.shutdown()
+    assert os.listdir(bus_dir) == []

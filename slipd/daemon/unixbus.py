@@ -11,7 +11,14 @@ Why it exists: this project's development machines have no CAN in the kernel, py
 ``virtual`` bus is in-process only, and its ``udp_multicast`` leaves the machine. The
 daemon's latency benchmark needs its bus feeder in another process (a feeder thread would
 hold the GIL the loop needs), so it runs on this transport; cross-process tests of the real
-thing run on vcan in the VM (tests/vm). Filters are applied in software by python-can.
+thing run on vcan in the VM (tests/vm).
+
+Receive filters act at the sender, as SocketCAN's act in the kernel: a participant publishes
+its filters beside its socket (``<name>.filters``, JSON) and senders skip the datagram to a
+peer none of whose filters match, so a receiver is not woken by frames it would drop (the
+benchmark's bus carries ~6x more frames than the daemon's filters pass). python-can still
+checks each received frame against the filters, so a sender that has not yet read a changed
+filter file costs time, never a wrong frame.
 
 A receiver whose socket buffer is full loses that frame, like a SocketCAN socket whose
 receive queue overflows; the sender counts such losses in ``dropped``.
@@ -19,6 +26,7 @@ receive queue overflows; the sender counts such losses in ``dropped``.
 
 from __future__ import annotations
 
+import json
 import os
 import select
 import socket
@@ -47,6 +55,9 @@ class UnixDatagramBus(can.BusABC):
         self.directory = Path(channel)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.path = self.directory / f"{os.getpid()}-{id(self):x}.sock"
+        self.filter_path = self.path.with_suffix(".filters")
+        # published before the socket is bound, so no sender sees this participant without them
+        self._publish_filters(can_filters)
         self.socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
         self.socket.bind(str(self.path))
@@ -54,7 +65,7 @@ class UnixDatagramBus(can.BusABC):
         self.receive_own_messages = receive_own_messages
         self.channel_info = f"unix datagram bus {self.directory}"
         self.dropped = 0
-        self._peers: list[str] = []
+        self._peers: list[tuple[str, tuple | None]] = []  # (socket path, its filters)
         self._peers_read = 0.0
         self._directory_mtime = -1
         self._own: list[can.Message] = []
@@ -62,6 +73,43 @@ class UnixDatagramBus(can.BusABC):
 
     def fileno(self) -> int:
         return self.socket.fileno()
+
+    def _publish_filters(self, filters) -> None:
+        """Write this participant's filters where senders read them (atomically: a rename,
+        which also moves the directory's mtime so senders re-read)."""
+        rows = [[int(f["can_id"]), int(f["can_mask"]), f.get("extended")]
+                for f in filters or ()]
+        temporary = self.filter_path.with_suffix(".filters-new")
+        temporary.write_text(json.dumps(rows))
+        os.replace(temporary, self.filter_path)
+
+    def _apply_filters(self, filters) -> None:
+        """python-can's hook for filtering below the bus object (kernel or hardware)."""
+        self._publish_filters(filters)
+
+    @staticmethod
+    def _read_filters(socket_path: str) -> tuple | None:
+        """A peer's published filters as (can_id & can_mask, can_mask, extended or None)
+        rows; None (send it everything) when it has none or they cannot be read."""
+        try:
+            rows = json.loads(Path(socket_path).with_suffix(".filters").read_text())
+            filters = tuple((int(can_id) & int(mask), int(mask), extended)
+                            for can_id, mask, extended in rows)
+        except (OSError, ValueError, TypeError):
+            return None
+        return filters or None
+
+    @staticmethod
+    def _passes(filters: tuple | None, frame_id: int, extended: bool) -> bool:
+        """python-can's filter rule (BusABC._matches_filters) on a peer's published rows."""
+        if filters is None:
+            return True
+        for masked_id, mask, filter_extended in filters:
+            if filter_extended is not None and filter_extended != extended:
+                continue
+            if frame_id & mask == masked_id:
+                return True
+        return False
 
     def _refresh_peers(self) -> None:
         """Re-list the participants when the directory changed (its mtime moves when a socket
@@ -77,8 +125,9 @@ class UnixDatagramBus(can.BusABC):
         self._directory_mtime = -1 if recent else mtime
         own = str(self.path)
         with os.scandir(self.directory) as entries:
-            self._peers = [entry.path for entry in entries
-                           if entry.name.endswith(".sock") and entry.path != own]
+            paths = [entry.path for entry in entries
+                     if entry.name.endswith(".sock") and entry.path != own]
+        self._peers = [(path, self._read_filters(path)) for path in paths]
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if time.monotonic() - self._peers_read > PEER_REFRESH_S:
@@ -94,7 +143,10 @@ class UnixDatagramBus(can.BusABC):
         else:
             datagram = CLASSIC.pack(frame_id, msg.dlc, data)
         gone = []
-        for peer in self._peers:
+        passes = self._passes
+        for peer, filters in self._peers:
+            if not passes(filters, msg.arbitration_id, msg.is_extended_id):
+                continue
             try:
                 self.socket.sendto(datagram, peer)
             except BlockingIOError:
@@ -102,7 +154,7 @@ class UnixDatagramBus(can.BusABC):
             except (ConnectionRefusedError, FileNotFoundError):
                 gone.append(peer)  # a participant that left without removing its file
         if gone:
-            self._peers = [p for p in self._peers if p not in gone]
+            self._peers = [(p, f) for p, f in self._peers if p not in gone]
         if self.receive_own_messages:
             self._own.append(self._decode(datagram, time.time(), is_rx=False))
 
@@ -145,10 +197,11 @@ class UnixDatagramBus(can.BusABC):
     def shutdown(self) -> None:
         super().shutdown()
         self.socket.close()
-        try:
-            self.path.unlink()
-        except FileNotFoundError:
-            pass
+        for path in (self.path, self.filter_path):
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                pass
 
     @staticmethod
     def _detect_available_configs():
