@@ -122,3 +122,20 @@ def test_filters_act_at_the_sender_like_kernel_filters(bus_dir):
         sender.shutdown()
         receiver.shutdown()
     assert os.listdir(bus_dir) == []
+
+
+def test_a_send_only_participant_binds_no_socket_file(bus_dir):
+    receiver = can.Bus(interface="slipd_unix", channel=bus_dir)
+    feeder = can.Bus(interface="slipd_unix", channel=bus_dir, receive=False)
+    try:
+        assert sorted(os.listdir(bus_dir)) == sorted([receiver.path.name,
+                                                       receiver.filter_path.name])
+        feeder.send(can.Message(arbitration_id=0x123, data=b"\x07", is_extended_id=False))
+        assert receiver.recv(1.0).data == b"\x07"
+        receiver.send(can.Message(arbitration_id=0x124, data=b"\x08", is_extended_id=False))
+        with pytest.raises(can.CanOperationError, match="send-only"):
+            feeder.recv(0.0)
+    finally:
+        feeder.shutdown()
+        receiver.shutdown()
+    assert os.listdir(bus_dir) == []

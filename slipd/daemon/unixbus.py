@@ -51,16 +51,20 @@ class UnixDatagramBus(can.BusABC):
     """See the module docstring. ``channel``: the bus directory (created if missing)."""
 
     def __init__(self, channel: str, can_filters=None, receive_own_messages: bool = False,
-                 **kwargs) -> None:
+                 receive: bool = True, **kwargs) -> None:
+        """``receive=False``: a send-only participant (a feeder that never reads), which
+        binds no socket file, so the others do not spend a send on it per frame."""
         self.directory = Path(channel)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.path = self.directory / f"{os.getpid()}-{id(self):x}.sock"
         self.filter_path = self.path.with_suffix(".filters")
-        # published before the socket is bound, so no sender sees this participant without them
-        self._publish_filters(can_filters)
+        self.receive = receive
         self.socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
-        self.socket.bind(str(self.path))
+        if receive:
+            # published before the socket is bound: no sender sees this participant without them
+            self._publish_filters(can_filters)
+            self.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
+            self.socket.bind(str(self.path))
         self.socket.setblocking(False)
         self.receive_own_messages = receive_own_messages
         self.channel_info = f"unix datagram bus {self.directory}"
@@ -85,7 +89,8 @@ class UnixDatagramBus(can.BusABC):
 
     def _apply_filters(self, filters) -> None:
         """python-can's hook for filtering below the bus object (kernel or hardware)."""
-        self._publish_filters(filters)
+        if self.receive:
+            self._publish_filters(filters)
 
     @staticmethod
     def _read_filters(socket_path: str) -> tuple | None:
@@ -161,6 +166,9 @@ class UnixDatagramBus(can.BusABC):
     def _recv_internal(self, timeout: float | None):
         if self.receive_own_messages and self._own:
             return self._own.pop(0), False
+        if not self.receive:
+            raise can.CanOperationError(f"{self.channel_info}: this participant was opened "
+                                        "send-only (receive=False)")
         try:
             datagram = self.socket.recv(FD.size)
         except BlockingIOError:
