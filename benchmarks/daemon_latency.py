@@ -72,7 +72,10 @@ def feeder(interface: str, channel: str, rate: float, duration: float, cpu: int 
     if cpu is not None:
         os.sched_setaffinity(0, {cpu})
     span, schedule = bus_schedule(rate)
-    bus = can.Bus(interface=interface, channel=channel)
+    # The feeder stands for other ECUs and never reads: on slipd_unix it binds no socket, so
+    # the daemon's frames are sent to the listener only.
+    send_only = {"receive": False} if interface == "slipd_unix" else {}
+    bus = can.Bus(interface=interface, channel=channel, **send_only)
     messages = [can.Message(arbitration_id=i, data=d, is_extended_id=False)
                 for _, i, d in schedule]
     times = np.array([t for t, _, _ in schedule])
@@ -159,8 +162,11 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     frames = 0
     measure_at = None
     snapshot, figures, cpu_before = None, None, None
+    poll_s = args.listener_poll_ms * 1e-3
     while daemon.poll() is None:
-        message = listener.recv(0.2)
+        message = listener.recv(0.0 if poll_s else 0.2)
+        if message is None and poll_s:
+            time.sleep(poll_s)
         now = time.monotonic()
         if message is not None and message.arbitration_id == state_id:
             frames += 1
@@ -229,6 +235,11 @@ def main() -> None:
     parser.add_argument("--spin-us", type=int, default=0,
                         help="realtime mode's spin window before each tick (default 0: sleep "
                              "to it; 300 measured lower p50, higher p99 here)")
+    parser.add_argument("--listener-poll-ms", type=float, default=2.0,
+                        help="this process drains the daemon's frames every N ms instead of "
+                             "waiting on its socket (0: wait), so on slipd_unix the daemon's "
+                             "send does not include waking it: on a vehicle slipd's frames go "
+                             "to other ECUs; the first frame is timed to N ms")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
     args = parser.parse_args()
     workdir = Path(tempfile.mkdtemp(prefix="slipd-latency-"))
@@ -239,7 +250,9 @@ def main() -> None:
                         "--estimator", args.estimator, "--duration", "0.2"],
                        check=True, capture_output=True)
         print(f"daemon: slipd run --estimator {args.estimator} on {args.interface} "
-              f"(feeder in another process), {args.duration:g} s per mode, "
+              f"(feeder in another process; this listener "
+              f"{f'polls every {args.listener_poll_ms:g} ms' if args.listener_poll_ms else 'waits'}"
+              f"), {args.duration:g} s per mode, "
               f"{args.rate:g} frames/s offered, {os.cpu_count()} CPUs")
         results = []
         for mode in args.modes.split(","):
