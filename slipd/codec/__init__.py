@@ -130,14 +130,17 @@ class Codec:
         self._input_counters[message] = counter + n
         return plan.frame_id(message), out
 
-    def encode_output(self, message: str, values: np.ndarray, out: np.ndarray) -> int:
+    def encode_output(self, message: str, values: np.ndarray, out: np.ndarray,
+                      advance_counter: bool = True) -> int:
         """Encode one output frame (SLIPD_STATE/AUX/DIAG) from ``values`` [N_TX] into ``out``.
 
-        Returns the frame ID. The alive counter advances with every call.
+        Returns the frame ID. The alive counter advances with every call unless
+        ``advance_counter`` is False (the daemon's dry runs, whose frames are never sent).
         """
         plan = self.outputs
         row = plan.message_rows[message]
         counter = self._tx_counters[message]
         kernels.encode_frame(plan.plan_i, plan.plan_f, row, values, counter, out)
-        self._tx_counters[message] = (counter + 1) % 16
+        if advance_counter:
+            self._tx_counters[message] = (counter + 1) % 16
         return plan.frame_id(message)
