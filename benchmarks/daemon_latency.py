@@ -10,7 +10,11 @@ runs (after start-up); the peak, reached while numba loads its kernels, is print
 
 Interface: ``slipd_unix`` (default; slipd.daemon.unixbus, unix datagram sockets between the
 processes: this machine kind has no vcan and python-can's virtual bus is in-process only) or
-``socketcan`` with ``--channel vcan0`` where the kernel has CAN.
+``socketcan`` with ``--channel vcan0`` where the kernel has CAN. On slipd_unix the daemon's
+filters act in the feeder (as SocketCAN's act in the kernel), the feeder is send-only, and
+this process drains the daemon's frames every ``--listener-poll-ms`` instead of waiting on
+its socket: a send to a waiting reader wakes it inside the sender's syscall, a cost of the
+benchmark's own listener that a vehicle's ECUs do not put on slipd.
 
     .venv/bin/python -m benchmarks.daemon_latency --duration 600
 """
@@ -65,8 +69,12 @@ def bus_schedule(rate: float, seed: int = 0):
 
 
 def feeder(interface: str, channel: str, rate: float, duration: float, cpu: int | None,
-           ready, report) -> None:
-    """Send the schedule in 1 ms slots on absolute deadlines until ``duration`` is over."""
+           clock_ppm: float, ready, report) -> None:
+    """Send the schedule on absolute deadlines until ``duration`` is over, on a clock
+    ``clock_ppm`` fast: ECUs do not share the PC's clock, so their frames' phase against the
+    daemon's ticks drifts (100 ppm, within automotive crystal tolerance, sweeps a whole 10 ms
+    period every 100 s). On one shared clock the phase stays where the start put it, and a run's
+    tail depended on whether the 100 Hz frames happened to land just before the ticks."""
     import can
 
     if cpu is not None:
@@ -86,7 +94,7 @@ def feeder(interface: str, channel: str, rate: float, duration: float, cpu: int 
     cycle = k = 0
     try:
         while True:
-            deadline = started + cycle * span + times[k]
+            deadline = started + (cycle * span + times[k]) / (1.0 + clock_ppm * 1e-6)
             if deadline - started >= duration:
                 break
             now = time.monotonic()
@@ -143,7 +151,7 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     feed = ctx.Process(target=feeder, args=(args.interface, channel, args.rate,
                                              args.duration + 15.0,
                                              0 if realtime and n_cpu > 1 else None,
-                                             ready, report))
+                                             args.clock_ppm, ready, report))
     feed.start()
     if not ready.wait(120):
         raise SystemExit("feeder did not start")
@@ -235,6 +243,9 @@ def main() -> None:
     parser.add_argument("--spin-us", type=int, default=0,
                         help="realtime mode's spin window before each tick (default 0: sleep "
                              "to it; 300 measured lower p50, higher p99 here)")
+    parser.add_argument("--clock-ppm", type=float, default=100.0,
+                        help="the feeder's clock rate error (its frames' phase against the "
+                             "daemon's ticks drifts; 0: fixed phase)")
     parser.add_argument("--listener-poll-ms", type=float, default=2.0,
                         help="this process drains the daemon's frames every N ms instead of "
                              "waiting on its socket (0: wait), so on slipd_unix the daemon's "
@@ -252,7 +263,7 @@ def main() -> None:
         print(f"daemon: slipd run --estimator {args.estimator} on {args.interface} "
               f"(feeder in another process; this listener "
               f"{f'polls every {args.listener_poll_ms:g} ms' if args.listener_poll_ms else 'waits'}"
-              f"), {args.duration:g} s per mode, "
+              f"; feeder clock {args.clock_ppm:+g} ppm), {args.duration:g} s per mode, "
               f"{args.rate:g} frames/s offered, {os.cpu_count()} CPUs")
         results = []
         for mode in args.modes.split(","):
