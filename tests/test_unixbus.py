@@ -139,3 +139,19 @@ def test_a_send_only_participant_binds_no_socket_file(bus_dir):
         feeder.shutdown()
         receiver.shutdown()
     assert os.listdir(bus_dir) == []
+
+
+def test_a_frame_read_late_carries_the_time_it_arrived(bus_dir):
+    """Kernel receive timestamps, as SocketCAN's: the daemon tells a frame that arrived
+    before a tick from one that arrived after it by this stamp, however late it reads it."""
+    receiver = can.Bus(interface="slipd_unix", channel=bus_dir)
+    sender = can.Bus(interface="slipd_unix", channel=bus_dir)
+    try:
+        sent_at = time.time()
+        sender.send(can.Message(arbitration_id=0x10, data=b"\x01", is_extended_id=False))
+        time.sleep(0.2)
+        received = receiver.recv(1.0)
+        assert abs(received.timestamp - sent_at) < 0.05  # not the read time, 0.2 s later
+    finally:
+        sender.shutdown()
+        receiver.shutdown()

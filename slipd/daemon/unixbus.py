@@ -4,8 +4,8 @@
 every participant binds one socket file in it and sends each frame to every other socket
 there, so all participants see each other's frames as on a CAN bus. Datagrams carry the
 SocketCAN wire formats (``struct can_frame``, 16 bytes; ``struct canfd_frame``, 72 bytes);
-receive timestamps are taken at reception on CLOCK_REALTIME, as the kernel stamps SocketCAN
-frames.
+receive timestamps are the kernel's (SO_TIMESTAMPNS, CLOCK_REALTIME, taken when the datagram
+is queued), as SocketCAN stamps frames at reception.
 
 Why it exists: this project's development machines have no CAN in the kernel, python-can's
 ``virtual`` bus is in-process only, and its ``udp_multicast`` leaves the machine. The
@@ -45,6 +45,9 @@ CLASSIC = struct.Struct("<IB3x8s")  # struct can_frame
 FD = struct.Struct("<IBB2x64s")  # struct canfd_frame
 PEER_REFRESH_S = 0.2  # how often the directory is checked for participants that came or went
 RECEIVE_BUFFER = 1 << 20
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # the socket module lacks it on 3.11
+TIMESPEC = struct.Struct("@qq")  # struct timespec on 64-bit Linux
+TIMESTAMP_SPACE = socket.CMSG_SPACE(TIMESPEC.size)
 
 
 class UnixDatagramBus(can.BusABC):
@@ -64,6 +67,9 @@ class UnixDatagramBus(can.BusABC):
             # published before the socket is bound: no sender sees this participant without them
             self._publish_filters(can_filters)
             self.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
+            # the kernel stamps each datagram as it is queued, as SocketCAN stamps a frame at
+            # reception: a frame read late still carries the time it arrived
+            self.socket.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             self.socket.bind(str(self.path))
         self.socket.setblocking(False)
         self.receive_own_messages = receive_own_messages
@@ -170,7 +176,7 @@ class UnixDatagramBus(can.BusABC):
             raise can.CanOperationError(f"{self.channel_info}: this participant was opened "
                                         "send-only (receive=False)")
         try:
-            datagram = self.socket.recv(FD.size)
+            datagram, ancillary, _, _ = self.socket.recvmsg(FD.size, TIMESTAMP_SPACE)
         except BlockingIOError:
             if timeout is not None and timeout <= 0:
                 return None, False
@@ -178,10 +184,15 @@ class UnixDatagramBus(can.BusABC):
             if not readable:
                 return None, False
             try:
-                datagram = self.socket.recv(FD.size)
+                datagram, ancillary, _, _ = self.socket.recvmsg(FD.size, TIMESTAMP_SPACE)
             except BlockingIOError:
                 return None, False
-        return self._decode(datagram, time.time()), False
+        stamp = time.time()
+        for level, kind, value in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                seconds, nanoseconds = TIMESPEC.unpack(value)
+                stamp = seconds + nanoseconds * 1e-9
+        return self._decode(datagram, stamp), False
 
     def _decode(self, datagram: bytes, stamp: float, is_rx: bool = True) -> can.Message:
         if len(datagram) == FD.size:
