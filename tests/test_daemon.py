@@ -341,3 +341,35 @@ def test_a_tick_after_skipped_ticks_steps_once_per_elapsed_tick():
     assert np.array_equal(got, every_step[np.cumsum(steps) - 1], equal_nan=True)
     once = run_method(Inputs(tick_time, U, {}, 0), PROFILE, "kinematic_heuristic").out
     assert not np.array_equal(got, once, equal_nan=True)
+
+
+def test_a_frame_received_after_the_tick_time_waits_for_the_next_tick():
+    """A tick latches what was received by its time (kernel receive timestamps), as a replay
+    of a bus log does; a frame stamped after it is decoded after the tick, never lost."""
+    from slipd.codec.kernels import LATCH_TIME
+
+    queue: list[can.Message] = []
+
+    class QueueBus:
+        def recv(self, timeout=None):
+            return queue.pop(0) if queue else None
+
+    daemon = Daemon(DaemonConfig(profile=PROFILE, interface="virtual", channel="unused"),
+                    bus=QueueBus(), log=lambda *_: None)
+    daemon._wall_offset = 0.0  # tick times on the monotonic clock, like the stamps below
+    frame_id, payloads = Codec(PROFILE).encode_channels(
+        "IMU_RATE", {In.YAW_RATE: np.array([0.1, 0.2]), In.ROLL_RATE: np.zeros(2),
+                     In.PITCH_RATE: np.zeros(2)})
+    deadline = round(time.monotonic() - 0.001, 6)  # a tick already due: the late drain
+    before, after = (can.Message(timestamp=stamp, arbitration_id=frame_id, data=bytes(p),
+                                 is_extended_id=False)
+                     for stamp, p in zip((deadline - 0.002, deadline + 0.0005), payloads,
+                                         strict=True))
+    queue[:] = [before, after]
+    daemon._receive_until(deadline)
+    latch_time = daemon.codec.state.latch[LATCH_TIME]
+    assert daemon.stats.counters["rx_frames"] == 1 and daemon._deferred is after
+    assert latch_time[In.YAW_RATE] == pytest.approx(before.timestamp)
+    daemon._receive_until(round(time.monotonic() - 0.001, 6))  # the next tick
+    assert daemon.stats.counters["rx_frames"] == 2 and daemon._deferred is None
+    assert latch_time[In.YAW_RATE] == pytest.approx(after.timestamp)

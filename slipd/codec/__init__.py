@@ -71,12 +71,13 @@ class Codec:
 
     # ---- decode -------------------------------------------------------------------------
     def decode(self, frame_id: int, data: bytes | np.ndarray, t: float,
-               extended: bool = False) -> int:
-        """Decode one frame into the latch; returns the message row, -1 unknown, -2 rejected."""
+               extended: bool = False, state: DecodeState | None = None) -> int:
+        """Decode one frame into the latch (or into ``state``, a scratch one); returns the
+        message row, -1 unknown, -2 rejected."""
         payload = np.frombuffer(bytes(data), dtype=np.uint8) if not isinstance(
             data, np.ndarray) else data
         p = self.inputs
-        s = self.state
+        s = self.state if state is None else state
         return kernels.decode_frame(p.plan_i, p.plan_f, p.lookup, frame_id, extended,
                                     len(payload), payload, t, p.timeouts, s.latch,
                                     s.msg_state, s.errors, s.scratch)

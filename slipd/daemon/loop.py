@@ -133,7 +133,11 @@ class Daemon:
         self._dry_state = self.state.copy()
         self._dry_u, self._dry_out, self._dry_tx = new_u(), np.zeros(N_OUT), np.zeros(N_TX)
         self._dry_buffer = np.zeros(8, dtype=np.uint8)
+        self._dry_decode = DecodeState.new(self.codec.inputs.n_messages)
+        self._last_frame: tuple | None = None  # (id, data, t, extended) for dry decodes
         self.spin = config.realtime.spin_us * 1e-6
+        self._deferred = None  # a frame received after a tick's time, decoded after it
+        self._first_dry_cost = 0.0  # s, the last spin window's first dry run (_receive_until)
         # Dry runs in a spin window also send the frame through a private socket pair: the
         # send syscall's path is then warm too (measured: a unix datagram send after 10 ms
         # idle 51 us median, 24 us with such sends before it, 7 us back to back).
@@ -164,19 +168,12 @@ class Daemon:
         """Run every kernel once on dummy data so numba has compiled/loaded them (before
         READY=1); returns the seconds it took."""
         started = time.perf_counter()
-        from slipd.codec import kernels
-
         self._dry_tick(0.0)  # sample, step, supervise, fill_tx, encode
-        # decode on a throwaway state, so the real latch and counters stay untouched
-        p = self.codec.inputs
-        scratch = DecodeState.new(p.n_messages)
-        # a read-only payload, as Codec.decode makes from a received frame's bytes: numba
-        # types it apart from a writable array (measured: a cold cache compiled it in the
-        # first tick, a 1.6 s stall)
-        payload = np.frombuffer(bytes(8), dtype=np.uint8)
-        kernels.decode_frame(p.plan_i, p.plan_f, p.lookup, 0x7FF, False, 8, payload, 0.0,
-                             p.timeouts, scratch.latch, scratch.msg_state, scratch.errors,
-                             scratch.scratch)
+        # decode from bytes, as a received frame is (Codec.decode makes a read-only payload,
+        # which numba types apart from a writable array: measured, a cold cache compiled it
+        # in the first tick, a 1.6 s stall), into a throwaway state, so the real latch and
+        # counters stay untouched
+        self.codec.decode(0x7FF, bytes(8), 0.0, False, state=self._dry_decode)
         return time.perf_counter() - started
 
     def _dry_tick(self, t_wall: float) -> None:
@@ -185,6 +182,8 @@ class Daemon:
         on this project's VMs: a tick after 9 ms asleep takes 80-160 us against 7 us back to
         back; the code and data simply are not in the caches any more."""
 
+        if self._last_frame is not None:  # a frame just before the tick then decodes hot
+            self.codec.decode(*self._last_frame, state=self._dry_decode)
         self._dry_state[:] = self.state
         self._estimate(t_wall, self._dry_state, self._dry_u, self._dry_out, self._dry_tx, 1)
         for name in OUTPUT_MESSAGES:
@@ -219,6 +218,7 @@ class Daemon:
         # Microsecond times, as the recorder writes them, so a replay sees the same values.
         timestamp = round(message.timestamp * 1e6) / 1e6
         self.codec.decode(frame_id, message.data, timestamp, message.is_extended_id)
+        self._last_frame = (frame_id, message.data, timestamp, message.is_extended_id)
         if self.recorder is not None:
             self.recorder.frame(timestamp, frame_id, message.is_extended_id, message.data,
                                 rx=True)
@@ -226,7 +226,8 @@ class Daemon:
     def _receive_until(self, deadline: float) -> None:
         """Receive and decode frames until ``deadline``. A tick that is already late still
         takes what the socket has queued (at most LATE_DRAIN_MAX frames), so after an overrun
-        the tick latches the newest inputs instead of starving them.
+        the tick latches the newest inputs instead of starving them; a frame whose receive
+        timestamp is after the tick's time waits for the next tick (``_deferred``).
 
         With a spin window (``RealtimeOptions.spin_us``) the wait ends ``spin`` seconds early
         and the socket is polled without sleeping until the deadline, with a dry run of the
@@ -234,11 +235,19 @@ class Daemon:
         of the window was not enough: measured on this project's VMs, 100 us of polling after
         it left the tick as slow as after a sleep, while dry runs up to the deadline brought a
         tick-sized Python workload from 119 to 8 us (median)."""
+        if self._deferred is not None:
+            message, self._deferred = self._deferred, None
+            self._on_frame(message)
         recv = self.bus.recv
         late_frames = 0
         spin_from = deadline - self.spin
-        t_dry = round((deadline + self._wall_offset) * 1e6) / 1e6
-        dry_cost = 0.0  # the last dry run's duration: none starts that would overrun the tick
+        t_tick = round((deadline + self._wall_offset) * 1e6) / 1e6
+        # No dry run starts that would overrun the tick: the first in a window runs on cold
+        # caches (measured ~160 us against ~20 once warm), so its guard is the last window's
+        # first run, halved after each window where it kept every run out (a run stretched
+        # by a preemption must not switch the warming off for good).
+        dry_cost = self._first_dry_cost
+        first_dry = True
         while True:
             now = time.monotonic()
             remaining = deadline - now
@@ -260,13 +269,24 @@ class Daemon:
                 self._bus_failed(exc)
                 continue
             if message is not None:
+                if remaining <= 0.0 and round(message.timestamp * 1e6) / 1e6 > t_tick:
+                    # Received after the tick's time: it is the next tick's, as a replay of a
+                    # bus log latches it, and draining a burst still arriving delayed ticks
+                    # by up to a millisecond (measured).
+                    self._deferred = message
+                    return
                 self._on_frame(message)
             elif remaining <= 0.0:
+                if first_dry and self.spin > 0.0:
+                    self._first_dry_cost *= 0.5
                 return
             elif timeout == 0.0 and remaining > dry_cost:
                 started = time.monotonic()
-                self._dry_tick(t_dry)
+                self._dry_tick(t_tick)
                 dry_cost = time.monotonic() - started
+                if first_dry:
+                    self._first_dry_cost = dry_cost
+                    first_dry = False
 
     def _bus_failed(self, exc: Exception) -> None:
         if self.bus_down_since is None:
@@ -469,6 +489,9 @@ class Daemon:
                     next_persist += PERSIST_INTERVAL
         finally:
             gc.callbacks.remove(self._on_gc)
+            if self._deferred is not None:  # decoded and recorded like every received frame
+                self._on_frame(self._deferred)
+                self._deferred = None
             self.save_state()
             for signum, handler in previous_handlers.items():
                 signal.signal(signum, handler)
