@@ -3,10 +3,11 @@
 ``slipd run`` runs as its own process; a feeder process puts a simulated drive on the bus at
 the profile's rates plus unrelated IDs up to ``--rate`` frames/s (4,000/s is a 500 kbit/s bus
 at ~70 % load with 8-byte frames); this process listens to the daemon's output frames. Each
-mode is run in turn: ``plain`` (no real-time settings) and ``realtime`` (SCHED_FIFO 50,
-mlockall, timer slack 1 ns, gc freeze, ``--spin-us`` before each tick if given,
-daemon pinned to the last CPU, feeder to the first). RSS is the daemon's resident set while it
-runs (after start-up); the peak, reached while numba loads its kernels, is printed beside it.
+mode is run in turn: ``plain`` (no real-time settings), ``realtime`` (SCHED_FIFO 50,
+mlockall, timer slack 1 ns, gc freeze, daemon pinned to the last CPU, feeder to the first)
+and ``spin`` (realtime plus a ``--spin-us`` window before each tick, 500 us by default).
+RSS is the daemon's resident set while it runs (after start-up); the peak, reached while
+numba loads its kernels, is printed beside it.
 
 Interface: ``slipd_unix`` (default; slipd.daemon.unixbus, unix datagram sockets between the
 processes: this machine kind has no vcan and python-can's virtual bus is in-process only) or
@@ -35,10 +36,8 @@ from pathlib import Path
 import numpy as np
 
 TARGETS = {"deadline misses": 0, "cycle p99 us": 300, "RSS MB": 150, "warm start s": 2.0}
-MODES = {
-    "plain": [],
-    "realtime": ["--sched-fifo", "50", "--mlockall", "--timer-slack-ns", "1", "--gc-freeze"],
-}
+REALTIME = ["--sched-fifo", "50", "--mlockall", "--timer-slack-ns", "1", "--gc-freeze"]
+MODES = {"plain": [], "realtime": REALTIME, "spin": REALTIME}
 
 
 def bus_schedule(rate: float, seed: int = 0):
@@ -143,7 +142,7 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     state_id = outputs.frame_id("SLIPD_STATE")
     channel = args.channel or str(workdir / f"bus-{mode}")
     n_cpu = os.cpu_count() or 1
-    realtime = mode == "realtime"
+    realtime = mode != "plain"
     listener = can.Bus(interface=args.interface, channel=channel,
                        can_filters=[{"can_id": state_id, "can_mask": 0x7FF, "extended": False}])
     ctx = mp.get_context("spawn")
@@ -159,7 +158,7 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     command = [str(Path(sys.executable).with_name("slipd")), "run", "--interface", args.interface,
                "--channel", channel, "--estimator", args.estimator, "--stats-socket",
                stats_socket, "--duration", str(args.duration + 3.0), *MODES[mode]]
-    if realtime and args.spin_us:
+    if mode == "spin":
         command += ["--spin-us", str(args.spin_us)]
     if realtime and n_cpu > 1:
         command += ["--cpu", str(n_cpu - 1)]
@@ -237,12 +236,11 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=60.0, help="measured seconds per mode")
     parser.add_argument("--rate", type=float, default=4000.0, help="bus frames/s")
     parser.add_argument("--estimator", default="kinematic_heuristic")
-    parser.add_argument("--modes", default="plain,realtime")
+    parser.add_argument("--modes", default="plain,realtime,spin")
     parser.add_argument("--interface", default="slipd_unix")
     parser.add_argument("--channel", help="bus channel (slipd_unix: a fresh directory)")
-    parser.add_argument("--spin-us", type=int, default=0,
-                        help="realtime mode's spin window before each tick (default 0: sleep "
-                             "to it; 300 measured lower p50, higher p99 here)")
+    parser.add_argument("--spin-us", type=int, default=500,
+                        help="the spin mode's window before each tick")
     parser.add_argument("--clock-ppm", type=float, default=100.0,
                         help="the feeder's clock rate error (its frames' phase against the "
                              "daemon's ticks drifts; 0: fixed phase)")
@@ -270,9 +268,12 @@ def main() -> None:
             result = run_mode(mode, args, workdir)
             print_result(result, args.duration)
             results.append(result)
-        if len(results) == 2:
-            a, b = (r["snapshot"]["cycle_latency_us"]["p99"] for r in results)
-            print(f"cycle p99 {results[1]['mode']} / {results[0]['mode']}: {b / max(a, 1):.2f}")
+        base = results[0]["snapshot"]["cycle_latency_us"]
+        for result in results[1:]:
+            cycle = result["snapshot"]["cycle_latency_us"]
+            print(f"cycle p50 / p99 {result['mode']} vs {results[0]['mode']}: "
+                  f"{cycle['p50'] / max(base['p50'], 1):.2f} / "
+                  f"{cycle['p99'] / max(base['p99'], 1):.2f}")
         if args.json:
             args.json.write_text(json.dumps(
                 [{k: v for k, v in r.items() if k != "log"} for r in results], indent=2))
