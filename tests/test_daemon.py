@@ -356,7 +356,6 @@ def test_a_frame_received_after_the_tick_time_waits_for_the_next_tick():
 
     daemon = Daemon(DaemonConfig(profile=PROFILE, interface="virtual", channel="unused"),
                     bus=QueueBus(), log=lambda *_: None)
-    daemon._wall_offset = 0.0  # tick times on the monotonic clock, like the stamps below
     frame_id, payloads = Codec(PROFILE).encode_channels(
         "IMU_RATE", {In.YAW_RATE: np.array([0.1, 0.2]), In.ROLL_RATE: np.zeros(2),
                      In.PITCH_RATE: np.zeros(2)})
@@ -366,10 +365,11 @@ def test_a_frame_received_after_the_tick_time_waits_for_the_next_tick():
                      for stamp, p in zip((deadline - 0.002, deadline + 0.0005), payloads,
                                          strict=True))
     queue[:] = [before, after]
-    daemon._receive_until(deadline)
+    daemon._receive_until(deadline, deadline)  # stamps below on the monotonic clock
     latch_time = daemon.codec.state.latch[LATCH_TIME]
     assert daemon.stats.counters["rx_frames"] == 1 and daemon._deferred is after
     assert latch_time[In.YAW_RATE] == pytest.approx(before.timestamp)
-    daemon._receive_until(round(time.monotonic() - 0.001, 6))  # the next tick
+    next_deadline = round(time.monotonic() - 0.001, 6)
+    daemon._receive_until(next_deadline, next_deadline)  # the next tick
     assert daemon.stats.counters["rx_frames"] == 2 and daemon._deferred is None
     assert latch_time[In.YAW_RATE] == pytest.approx(after.timestamp)

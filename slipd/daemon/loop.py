@@ -25,6 +25,7 @@ import numpy as np
 from slipd.channels import N_OUT, ST_INPUT_TIMEOUT, ST_VALID, In, Out, new_u
 from slipd.codec import N_TX, Codec, DecodeState, Tx
 from slipd.codec.kernels import LATCH_SET, LATCH_TIME
+from slipd.codec.plan import OUTPUT_MESSAGES
 from slipd.codec.tx import fill_tx
 from slipd.daemon.recorder import FlightRecorder
 from slipd.daemon.service import (
@@ -45,7 +46,7 @@ PERSIST_INTERVAL = 60.0  # s
 LATE_DRAIN_MAX = 64  # frames taken from the socket queue before a tick that is already late
 SOCKET_RECEIVE_BUFFER = 1 << 20  # bytes: ~1 s of a full bus queued while the loop is busy
 IFF_UP = 0x1
-OUTPUT_MESSAGES = ("SLIPD_STATE", "SLIPD_AUX", "SLIPD_DIAG")
+TICK_MESSAGES = ("SLIPD_STATE", "SLIPD_AUX")  # sent every tick; SLIPD_DIAG once a second
 
 
 @dataclass
@@ -92,6 +93,11 @@ def _enlarge_receive_buffer(sock) -> None:
             continue
 
 
+def _microseconds(t: float) -> float:
+    """A time on the microsecond grid the recorder writes, so a replay sees the same values."""
+    return round(t * 1e6) / 1e6
+
+
 def interface_is_up(channel: str) -> bool | None:
     """IFF_UP of a network interface from sysfs; None when it does not exist."""
     try:
@@ -134,7 +140,7 @@ class Daemon:
         self._dry_u, self._dry_out, self._dry_tx = new_u(), np.zeros(N_OUT), np.zeros(N_TX)
         self._dry_buffer = np.zeros(8, dtype=np.uint8)
         self._dry_decode = DecodeState.new(self.codec.inputs.n_messages)
-        self._last_frame: tuple | None = None  # (id, data, t, extended) for dry decodes
+        self._last_message = None  # the newest received frame, decoded again by dry runs
         self.spin = config.realtime.spin_us * 1e-6
         self._deferred = None  # a frame received after a tick's time, decoded after it
         self._first_dry_cost = 0.0  # s, the last spin window's first dry run (_receive_until)
@@ -156,7 +162,6 @@ class Daemon:
                                         config.channel) if config.recorder else None)
         self.server = StatsServer(config.stats_socket, config.prometheus)
         self.bus_down_since: float | None = None
-        self._wall_offset = 0.0
         self._next_reopen = 0.0
         self.bus_events: list[str] = []
         self.started_at = 0.0
@@ -182,11 +187,13 @@ class Daemon:
         on this project's VMs: a tick after 9 ms asleep takes 80-160 us against 7 us back to
         back; the code and data simply are not in the caches any more."""
 
-        if self._last_frame is not None:  # a frame just before the tick then decodes hot
-            self.codec.decode(*self._last_frame, state=self._dry_decode)
+        last = self._last_message
+        if last is not None:  # a frame just before the tick then decodes hot
+            self.codec.decode(last.arbitration_id, last.data, t_wall, last.is_extended_id,
+                              state=self._dry_decode)
         self._dry_state[:] = self.state
         self._estimate(t_wall, self._dry_state, self._dry_u, self._dry_out, self._dry_tx, 1)
-        for name in OUTPUT_MESSAGES:
+        for name in TICK_MESSAGES:
             message = self._encode(name, self._dry_tx, self._dry_buffer, self._dry_message,
                                    advance_counter=False)
         if self._syscall_warmer is not None:
@@ -215,19 +222,19 @@ class Daemon:
         stats.counters["rx_frames"] += 1
         frame_id = message.arbitration_id
         stats.rx_per_id[frame_id] = stats.rx_per_id.get(frame_id, 0) + 1
-        # Microsecond times, as the recorder writes them, so a replay sees the same values.
-        timestamp = round(message.timestamp * 1e6) / 1e6
+        timestamp = _microseconds(message.timestamp)
         self.codec.decode(frame_id, message.data, timestamp, message.is_extended_id)
-        self._last_frame = (frame_id, message.data, timestamp, message.is_extended_id)
+        self._last_message = message
         if self.recorder is not None:
             self.recorder.frame(timestamp, frame_id, message.is_extended_id, message.data,
                                 rx=True)
 
-    def _receive_until(self, deadline: float) -> None:
-        """Receive and decode frames until ``deadline``. A tick that is already late still
-        takes what the socket has queued (at most LATE_DRAIN_MAX frames), so after an overrun
-        the tick latches the newest inputs instead of starving them; a frame whose receive
-        timestamp is after the tick's time waits for the next tick (``_deferred``).
+    def _receive_until(self, deadline: float, t_tick: float) -> None:
+        """Receive and decode frames until ``deadline`` (CLOCK_MONOTONIC; ``t_tick`` is the
+        same instant in wall-clock microseconds, as frames are stamped). A tick that is already
+        late still takes what the socket has queued (at most LATE_DRAIN_MAX frames), so after
+        an overrun the tick latches the newest inputs instead of starving them; a frame whose
+        receive timestamp is after the tick's time waits for the next tick (``_deferred``).
 
         With a spin window (``RealtimeOptions.spin_us``) the wait ends ``spin`` seconds early
         and the socket is polled without sleeping until the deadline, with a dry run of the
@@ -241,7 +248,6 @@ class Daemon:
         recv = self.bus.recv
         late_frames = 0
         spin_from = deadline - self.spin
-        t_tick = round((deadline + self._wall_offset) * 1e6) / 1e6
         # No dry run starts that would overrun the tick: the first in a window runs on cold
         # caches (measured ~160 us against ~20 once warm), so its guard is the last window's
         # first run, halved after each window where it kept every run out (a run stretched
@@ -269,7 +275,7 @@ class Daemon:
                 self._bus_failed(exc)
                 continue
             if message is not None:
-                if remaining <= 0.0 and round(message.timestamp * 1e6) / 1e6 > t_tick:
+                if remaining <= 0.0 and _microseconds(message.timestamp) > t_tick:
                     # Received after the tick's time: it is the next tick's, as a replay of a
                     # bus log latches it, and draining a burst still arriving delayed ticks
                     # by up to a millisecond (measured).
@@ -277,7 +283,7 @@ class Daemon:
                     return
                 self._on_frame(message)
             elif remaining <= 0.0:
-                if first_dry and self.spin > 0.0:
+                if first_dry:
                     self._first_dry_cost *= 0.5
                 return
             elif timeout == 0.0 and remaining > dry_cost:
@@ -365,8 +371,8 @@ class Daemon:
         out = self.out
         self._estimate(t_wall, self.state, self.u, out, self.tx, self.steps)
         self.steps = 1
-        self._send("SLIPD_STATE", t_wall)
-        self._send("SLIPD_AUX", t_wall)
+        for name in TICK_MESSAGES:
+            self._send(name, t_wall)
         status = int(out[Out.STATUS])
         if status & ST_INPUT_TIMEOUT and not self.last_status & ST_INPUT_TIMEOUT:
             self.stats.counters["input_timeouts"] += 1
@@ -443,7 +449,7 @@ class Daemon:
         stats = self.stats
         monotonic = time.monotonic
         self.started_at = monotonic()
-        wall_offset = self._wall_offset = time.time() - monotonic()
+        wall_offset = time.time() - monotonic()
         next_tick = self.started_at + TICK_DT
         end = self.started_at + config.duration if config.duration else math.inf
         next_second = self.started_at + 1.0
@@ -451,9 +457,10 @@ class Daemon:
         rejected = 0
         try:
             while self.running and next_tick <= end:
-                self._receive_until(next_tick)
+                t_tick = _microseconds(next_tick + wall_offset)
+                self._receive_until(next_tick, t_tick)
                 woke = monotonic()
-                self.tick(round((next_tick + wall_offset) * 1e6) / 1e6)
+                self.tick(t_tick)
                 sent = monotonic()
                 if self.first_frame_at is None:
                     self.first_frame_at = sent

@@ -50,6 +50,11 @@ TIMESPEC = struct.Struct("@qq")  # struct timespec on 64-bit Linux
 TIMESTAMP_SPACE = socket.CMSG_SPACE(TIMESPEC.size)
 
 
+def _filter_path(socket_path: Path) -> Path:
+    """Where the participant bound at ``socket_path`` publishes its receive filters."""
+    return socket_path.with_suffix(".filters")
+
+
 class UnixDatagramBus(can.BusABC):
     """See the module docstring. ``channel``: the bus directory (created if missing)."""
 
@@ -60,7 +65,7 @@ class UnixDatagramBus(can.BusABC):
         self.directory = Path(channel)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.path = self.directory / f"{os.getpid()}-{id(self):x}.sock"
-        self.filter_path = self.path.with_suffix(".filters")
+        self.filter_path = _filter_path(self.path)
         self.receive = receive
         self.socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         if receive:
@@ -103,7 +108,7 @@ class UnixDatagramBus(can.BusABC):
         """A peer's published filters as (can_id & can_mask, can_mask, extended or None)
         rows; None (send it everything) when it has none or they cannot be read."""
         try:
-            rows = json.loads(Path(socket_path).with_suffix(".filters").read_text())
+            rows = json.loads(_filter_path(Path(socket_path)).read_text())
             filters = tuple((int(can_id) & int(mask), int(mask), extended)
                             for can_id, mask, extended in rows)
         except (OSError, ValueError, TypeError):
