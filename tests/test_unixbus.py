@@ -155,3 +155,35 @@ def test_a_frame_read_late_carries_the_time_it_arrived(bus_dir):
     finally:
         sender.shutdown()
         receiver.shutdown()
+
+
+def test_participants_that_leave_and_join_after_the_sender_connected(bus_dir):
+    """The sender keeps a socket connected to each peer; one that leaves (cleanly or by
+    dying) costs no error, and one that joins later is found at the next refresh."""
+    from slipd.daemon.unixbus import PEER_REFRESH_S
+
+    sender = can.Bus(interface="slipd_unix", channel=bus_dir)
+    stays = can.Bus(interface="slipd_unix", channel=bus_dir)
+    leaves = can.Bus(interface="slipd_unix", channel=bus_dir)
+    dies = can.Bus(interface="slipd_unix", channel=bus_dir)
+    joins = None
+    frame = can.Message(arbitration_id=0x100, data=b"\x01", is_extended_id=False)
+    try:
+        sender.send(frame)
+        for receiver in (stays, leaves, dies):
+            assert receiver.recv(1.0) is not None
+        leaves.shutdown()
+        dies.socket.close()  # its socket file stays behind
+        sender.send(frame)
+        sender.send(frame)
+        assert stays.recv(1.0) is not None and stays.recv(1.0) is not None
+        assert len(sender._peers) == 1
+        joins = can.Bus(interface="slipd_unix", channel=bus_dir)
+        time.sleep(PEER_REFRESH_S + 0.05)
+        sender.send(frame)
+        assert joins.recv(1.0) is not None
+        assert stays.recv(1.0) is not None
+    finally:
+        for bus in (sender, stays, joins):
+            if bus is not None:
+                bus.shutdown()
