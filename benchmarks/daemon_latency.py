@@ -143,6 +143,11 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     channel = args.channel or str(workdir / f"bus-{mode}")
     n_cpu = os.cpu_count() or 1
     realtime = mode != "plain"
+    own_cpus = os.sched_getaffinity(0)
+    if realtime and n_cpu > 1:
+        # this process (the listener) shares the feeder's CPU: the daemon's is its own, as a
+        # vehicle PC gives the real-time service a CPU the other services do not run on
+        os.sched_setaffinity(0, {0})
     listener = can.Bus(interface=args.interface, channel=channel,
                        can_filters=[{"can_id": state_id, "can_mask": 0x7FF, "extended": False}])
     ctx = mp.get_context("spawn")
@@ -195,6 +200,7 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     if feed.is_alive():
         feed.terminate()
     listener.shutdown()
+    os.sched_setaffinity(0, own_cpus)
     if snapshot is None:
         raise SystemExit(f"{mode}: the daemon stopped before the measurement:\n{log}")
     return {"mode": mode, "snapshot": snapshot, "figures": figures, "warm_start_s": first_frame,
