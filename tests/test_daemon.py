@@ -318,6 +318,34 @@ print(before, after, released // 1024, first(np.ones(3)), second(np.arange(3.0))
     assert float(first) == 3.0 and float(second) == 3.0
 
 
+def test_the_daemon_process_runs_every_estimator_without_numba_loading_scipy_blas():
+    """`slipd run` keeps numba from importing scipy.linalg (a 200 ms, 16 MB probe for BLAS no
+    kernel uses); every estimator's kernels must still load and run there."""
+    script = """
+import sys
+from slipd.commands.run import _skip_numba_blas_probe
+_skip_numba_blas_probe()
+from slipd.daemon.loop import Daemon, DaemonConfig
+from slipd.estimators import base
+from slipd.profile import load_profile
+from numba.np import arraymath
+
+profile = load_profile("default")
+for name in base.available():
+    daemon = Daemon(DaemonConfig(profile=profile, estimator=name, interface="virtual",
+                                 channel="blas-probe"), log=lambda *_: None)
+    daemon.warm_up()
+    daemon.bus.shutdown()
+print(len(base.available()), arraymath._HAVE_BLAS, "scipy.linalg" in sys.modules)
+"""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    count, have_blas, scipy_linalg = result.stdout.split()
+    assert int(count) >= 5
+    assert have_blas == "False" and scipy_linalg == "False"
+
+
 def test_a_tick_after_skipped_ticks_steps_once_per_elapsed_tick():
     """Batch side of base.catch_up_steps: a recording's tick gaps become repeated steps on
     the later tick's inputs, and only the last step's output is that tick's."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import tomllib
 from pathlib import Path
 
@@ -68,11 +69,27 @@ def _settings(args: argparse.Namespace) -> dict:
     return settings
 
 
+def _skip_numba_blas_probe() -> None:
+    """Keep numba from importing scipy.linalg in the daemon's process.
+
+    numba probes for BLAS when it registers its array functions (numba.np.arraymath imports
+    scipy.linalg.cython_blas whenever scipy is installed), which cost the daemon's start
+    ~200 ms and 16 MB of peak RSS (measured) for BLAS and LAPACK it never calls: no kernel
+    uses np.linalg or np.dot, and a vehicle install (no ``sim`` extra) has no scipy at all.
+    Marking the module absent makes a workstation with scipy start the daemon as a vehicle
+    does. A kernel that did need BLAS would fail to compile at the warm-up, before READY=1,
+    with numba's "scipy 0.16+ is required for linear algebra".
+    """
+    if "numba" not in sys.modules:
+        sys.modules.setdefault("scipy.linalg.cython_blas", None)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.demo:
         from slipd.daemon.demo import run_demo
 
         return run_demo(args)
+    _skip_numba_blas_probe()
     from slipd.daemon.loop import Daemon, DaemonConfig
     from slipd.daemon.service import RealtimeOptions
     from slipd.profile import load_profile
