@@ -36,6 +36,7 @@ from slipd.daemon.service import (
     release_compiler_pages,
 )
 from slipd.daemon.stats import Stats, StatsServer
+from slipd.daemon.transmit import PAYLOAD, QUEUE_FULL, frame_buffer, frame_writer
 from slipd.estimators import base
 from slipd.estimators.supervision import required_mask, supervise
 from slipd.profile import Profile
@@ -135,10 +136,10 @@ class Daemon:
         self.last_status = 0
         self.steps = 1  # estimator steps at the next tick (base.catch_up_steps)
         self._gc_started = 0.0
-        self._buffers = {name: np.zeros(8, dtype=np.uint8) for name in OUTPUT_MESSAGES}
         self._dry_state = self.state.copy()
         self._dry_u, self._dry_out, self._dry_tx = new_u(), np.zeros(N_OUT), np.zeros(N_TX)
-        self._dry_buffer = np.zeros(8, dtype=np.uint8)
+        self._dry_frame = frame_buffer(0)
+        self._dry_payload = self._dry_frame[PAYLOAD]
         self._dry_decode = DecodeState.new(self.codec.inputs.n_messages)
         self._last_message = None  # the newest received frame, decoded again by dry runs
         self.spin = config.realtime.spin_us * 1e-6
@@ -153,11 +154,16 @@ class Daemon:
         self.plan_ids = [(plan.frame_id(n), plan.is_extended(n)) for n in plan.message_names]
         self.bus = bus if bus is not None else open_bus(config, self.plan_ids)
         self._owns_bus = bus is None
+        self._write_frame = frame_writer(self.bus)
         outputs = self.codec.outputs
-        self._messages = {name: can.Message(arbitration_id=outputs.frame_id(name),
-                                            is_extended_id=False, data=bytes(8))
-                          for name in OUTPUT_MESSAGES}
-        self._dry_message = can.Message(is_extended_id=False, data=bytes(8))
+        self._frame_ids = {name: outputs.frame_id(name) for name in OUTPUT_MESSAGES}
+        self._frames = {name: frame_buffer(frame_id)
+                        for name, frame_id in self._frame_ids.items()}
+        self._payloads = {name: frame[PAYLOAD] for name, frame in self._frames.items()}
+        # for buses without a frame writer (python-can's virtual bus of the demo and tests)
+        self._messages = {name: can.Message(arbitration_id=frame_id, is_extended_id=False,
+                                            data=bytes(8))
+                          for name, frame_id in self._frame_ids.items()}
         self.recorder = (FlightRecorder(config.recorder, config.recorder_max_bytes,
                                         config.channel) if config.recorder else None)
         self.server = StatsServer(config.stats_socket, config.prometheus)
@@ -193,12 +199,12 @@ class Daemon:
                               state=self._dry_decode)
         self._dry_state[:] = self.state
         self._estimate(t_wall, self._dry_state, self._dry_u, self._dry_out, self._dry_tx, 1)
-        for name in TICK_MESSAGES:
-            message = self._encode(name, self._dry_tx, self._dry_buffer, self._dry_message,
-                                   advance_counter=False)
+        for name in TICK_MESSAGES:  # the send path's encode, alive counters untouched
+            self.codec.encode_output(name, self._dry_tx, self._dry_payload,
+                                     advance_counter=False)
         if self._syscall_warmer is not None:
             sender, receiver = self._syscall_warmer
-            sender.send(message.data)
+            sender.send(self._dry_frame)
             receiver.recv(64)
 
     def restore_state(self) -> str:
@@ -319,6 +325,7 @@ class Daemon:
                     pass
                 try:
                     self.bus = open_bus(self.config, self.plan_ids)
+                    self._write_frame = frame_writer(self.bus)
                     down = now - self.bus_down_since
                     event = f"bus {self.config.channel} reopened after {down:.1f} s"
                     self.bus_events.append(event)
@@ -331,28 +338,31 @@ class Daemon:
         if remaining > 0:
             time.sleep(remaining)
 
-    def _encode(self, name: str, tx: np.ndarray, buffer: np.ndarray, message,
-                advance_counter: bool = True):
-        """Encode output message ``name`` from ``tx`` into ``message``'s data (the same path
-        for a sent frame and a dry run's)."""
-        self.codec.encode_output(name, tx, buffer, advance_counter)
-        message.data[:] = buffer.tobytes()
-        return message
-
     def _send(self, name: str, t_record: float) -> None:
-        message = self._encode(name, self.tx, self._buffers[name], self._messages[name])
-        message.timestamp = t_record
+        """Encode output message ``name`` into its frame buffer and send it: written as a
+        ``struct can_frame`` where the bus allows it (slipd.daemon.transmit), else as a
+        python-can Message."""
+        payload = self._payloads[name]
+        self.codec.encode_output(name, self.tx, payload)
         if self.bus_down_since is None:
             try:
-                self.bus.send(message)
+                if self._write_frame is not None:
+                    self._write_frame(self._frames[name])
+                else:
+                    message = self._messages[name]
+                    message.data[:] = payload.tobytes()
+                    message.timestamp = t_record
+                    self.bus.send(message)
             except (self.can.CanOperationError, OSError) as exc:
                 self.stats.counters["tx_errors"] += 1
-                if getattr(exc, "errno", None) not in (105,):  # ENOBUFS: queue full, go on
+                # python-can puts the errno in error_code; a full queue loses this frame only
+                code = getattr(exc, "errno", None) or getattr(exc, "error_code", None)
+                if code not in QUEUE_FULL:
                     self._bus_failed(exc)
         else:
             self.stats.counters["tx_errors"] += 1
         if self.recorder is not None:
-            self.recorder.frame(t_record, message.arbitration_id, False, message.data, rx=False)
+            self.recorder.frame(t_record, self._frame_ids[name], False, payload, rx=False)
 
     def _estimate(self, t_wall: float, state: np.ndarray, u: np.ndarray, out: np.ndarray,
                   tx: np.ndarray, steps: int) -> None:

@@ -44,6 +44,7 @@ CANFD_BRS = 0x01
 CANFD_ESI = 0x02
 CLASSIC = struct.Struct("<IB3x8s")  # struct can_frame
 FD = struct.Struct("<IBB2x64s")  # struct canfd_frame
+CAN_ID = struct.Struct("<I")  # the can_id both begin with
 PEER_GONE = (errno.ECONNREFUSED, errno.ENOENT, errno.ENOTCONN)  # send errors: peer left
 PEER_REFRESH_S = 0.2  # how often the directory is checked for participants that came or went
 RECEIVE_BUFFER = 1 << 20
@@ -183,8 +184,6 @@ class UnixDatagramBus(can.BusABC):
         self._peers = peers
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        if time.monotonic() - self._peers_read > PEER_REFRESH_S:
-            self._refresh_peers()
         frame_id = msg.arbitration_id | (CAN_EFF_FLAG if msg.is_extended_id else 0)
         if msg.is_remote_frame:
             frame_id |= CAN_RTR_FLAG
@@ -192,16 +191,26 @@ class UnixDatagramBus(can.BusABC):
         if msg.is_fd:
             flags = (CANFD_BRS if msg.bitrate_switch else 0) | (
                 CANFD_ESI if msg.error_state_indicator else 0)
-            datagram = FD.pack(frame_id, len(data), flags, data)
+            self.write_frame(FD.pack(frame_id, len(data), flags, data))
         else:
-            datagram = CLASSIC.pack(frame_id, msg.dlc, data)
+            self.write_frame(CLASSIC.pack(frame_id, msg.dlc, data))
+
+    def write_frame(self, frame) -> None:
+        """Send a ``struct can_frame`` or ``struct canfd_frame`` (any bytes-like object) as
+        is, as ``write()`` on a SocketCAN socket does: the daemon's fast transmit path
+        (slipd.daemon.transmit)."""
+        if time.monotonic() - self._peers_read > PEER_REFRESH_S:
+            self._refresh_peers()
+        (can_id,) = CAN_ID.unpack_from(frame)
+        arbitration_id = can_id & 0x1FFFFFFF
+        extended = bool(can_id & CAN_EFF_FLAG)
         gone = []
         passes = self._passes
         for peer in self._peers:
-            if not passes(peer.filters, msg.arbitration_id, msg.is_extended_id):
+            if not passes(peer.filters, arbitration_id, extended):
                 continue
             try:
-                peer.socket.send(datagram)
+                peer.socket.send(frame)
             except BlockingIOError:
                 self.dropped += 1  # that receiver's queue is full: it loses this frame
             except OSError as exc:
@@ -214,7 +223,7 @@ class UnixDatagramBus(can.BusABC):
             self._peers = [peer for peer in self._peers if peer not in gone]
             self._directory_mtime = -1  # list again at the next refresh: it may be back
         if self.receive_own_messages:
-            self._own.append(self._decode(datagram, time.time(), is_rx=False))
+            self._own.append(self._decode(bytes(frame), time.time(), is_rx=False))
 
     def _recv_internal(self, timeout: float | None):
         if self.receive_own_messages and self._own:
