@@ -233,6 +233,9 @@ def print_result(result: dict, duration: float) -> None:
           f"input timeouts {counters['input_timeouts']}; gc pauses {gc_pause['count']} "
           f"(p99 {gc_pause['p99']} us, max {gc_pause['max']} us, "
           f"{counters['gc_full_collections']} full)")
+    for line in result["log"].splitlines():  # when each miss happened, and its cause
+        if "deadline miss" in line:
+            print(f"    {line}")
     print(f"  CPU {fig['cpu_percent']:.1f} % of one core, RSS {fig['rss_mb']:.0f} MB (peak "
           f"{fig['rss_peak_mb']:.0f} MB; anonymous {fig['rss_anon_mb']:.0f} MB, file-backed "
           f"{fig['rss_file_mb']:.0f} MB), page faults while measured {fig['faults_in_run']}, "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import json
 import os
+import select
 import signal
 import socket
 import subprocess
@@ -12,6 +13,7 @@ import sys
 import threading
 import time
 import urllib.request
+from pathlib import Path
 
 import can
 import cantools
@@ -77,7 +79,9 @@ def _run(tmp_path, channel, seconds, estimator="zero", spin_us=0, stall_s=0.0, *
             gc.collect()  # a full collection, which the gc_pause_us histogram must show
             time.sleep(stalls.pop())
 
-    daemon = Daemon(config, bus=daemon_bus, log=lambda *_: None, on_second=stall_once)
+    log: list[str] = []
+    daemon = Daemon(config, bus=daemon_bus, log=log.append, on_second=stall_once)
+    daemon.logged = log
     snapshots = []
 
     def drive():
@@ -136,6 +140,11 @@ def test_state_frames_at_100_hz_and_recorder_replays_byte_for_byte(tmp_path, est
     if stall_s:  # the stall skipped ticks: the replay below must step through them too
         assert counters["deadline_misses"] >= 4 and np.max(np.round(gaps)) >= 5
         assert counters["gc_full_collections"] >= 1 and final["gc_pause_us"]["count"] >= 1
+        # the miss is logged with what caused it: this tick woke late, it did not run long
+        misses = [line for line in daemon.logged if "deadline miss" in line]
+        assert misses and len(misses) <= 3  # at most one line a second
+        woke_late = float(misses[0].split("woke ")[1].split(" ms")[0])
+        assert woke_late >= stall_s * 1e3 - 10.0
     # the recorder log, replayed, gives the same SLIPD_STATE/AUX bytes
     inputs = latch_log_or_recording(frames, PROFILE)
     estimate = run_method(inputs, PROFILE, estimator)
@@ -344,6 +353,24 @@ print(len(base.available()), arraymath._HAVE_BLAS, "scipy.linalg" in sys.modules
     count, have_blas, scipy_linalg = result.stdout.split()
     assert int(count) >= 5
     assert have_blas == "False" and scipy_linalg == "False"
+
+
+def test_the_daemon_log_reaches_a_pipe_while_it_runs():
+    """Under systemd stdout is a pipe to the journal: each line must arrive when logged, not
+    when Python's buffer fills or the process exits."""
+    command = [str(Path(sys.executable).with_name("slipd")), "run", "--interface", "virtual",
+               "--channel", "log-pipe", "--duration", "30"]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # as systemd
+    daemon = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True, env=env)
+    try:
+        # the daemon runs for 30 s: a line held back in a buffer would come only at its exit
+        readable, _, _ = select.select([daemon.stdout], [], [], 20.0)
+        assert readable, "no log line within 20 s of the daemon's start"
+        assert daemon.stdout.readline().startswith("slipd: ")
+    finally:
+        daemon.terminate()
+        daemon.wait(60)
 
 
 def test_a_tick_after_skipped_ticks_steps_once_per_elapsed_tick():

@@ -99,6 +99,13 @@ def _microseconds(t: float) -> float:
     return round(t * 1e6) / 1e6
 
 
+def _log_line(line: str) -> None:
+    """The daemon's default log: one line to stdout, flushed at once (under systemd stdout is
+    a pipe to the journal, block-buffered by Python: a bus failure would show up kilobytes
+    of log later)."""
+    print(line, flush=True)
+
+
 def interface_is_up(channel: str) -> bool | None:
     """IFF_UP of a network interface from sysfs; None when it does not exist."""
     try:
@@ -112,12 +119,12 @@ class Daemon:
     """One estimator on one bus. ``run()`` blocks until stopped."""
 
     def __init__(self, config: DaemonConfig, bus=None,
-                 on_second: Callable[[Daemon], None] | None = None, log=print):
+                 on_second: Callable[[Daemon], None] | None = None, log=None):
         import can
 
         self.can = can
         self.config = config
-        self.log = log
+        self.log = log or _log_line
         self.codec = Codec(config.profile)
         self.method = base.load(config.estimator)
         self.estimator_id = float(base.available().index(config.estimator))
@@ -172,6 +179,8 @@ class Daemon:
         self.bus_events: list[str] = []
         self.started_at = 0.0
         self.first_frame_at: float | None = None
+        self._next_miss_log = 0.0  # monotonic time before which a miss is counted, not logged
+        self._unlogged_misses = 0
         self.ready = threading.Event()  # set with READY=1 (tests and the demo wait on it)
 
     # ---- start-up -------------------------------------------------------------------------
@@ -391,6 +400,23 @@ class Daemon:
             self.stats.counters["valid_ticks"] += 1
         self.last_status = status
 
+    def _report_miss(self, woke: float, sent: float, cycle_us: float, skipped: int) -> None:
+        """Log a deadline miss (in the slack after the tick): when it happened and whether
+        the loop woke late or the tick ran long, which tells a stall of the machine from one
+        of slipd's. At most one line a second; the misses in between are counted in the next."""
+        if sent < self._next_miss_log:
+            self._unlogged_misses += 1 + skipped
+            return
+        self._next_miss_log = sent + 1.0
+        earlier = (f"; {self._unlogged_misses} more since the last report"
+                   if self._unlogged_misses else "")
+        self._unlogged_misses = 0
+        tick_ms = (sent - woke) * 1e3
+        self.log(f"slipd: deadline miss {sent - self.started_at:.3f} s after start: frames "
+                 f"sent {cycle_us / 1e3:.2f} ms after the tick (woke "
+                 f"{cycle_us / 1e3 - tick_ms:.2f} ms late, tick {tick_ms:.2f} ms), "
+                 f"{skipped} tick(s) skipped{earlier}")
+
     def _second(self, rx_rejected_before: int) -> int:
         """1 Hz housekeeping: SLIPD_DIAG, systemd status/watchdog. Returns rejected total."""
         stats, tx = self.stats, self.tx
@@ -493,6 +519,7 @@ class Daemon:
                     stats.interval_misses += 1 + behind
                     next_tick += behind * TICK_DT
                     self.steps = int(base.catch_up_steps(behind))
+                    self._report_miss(woke, sent, cycle_us, behind)
                 # Slack work, after this tick's frames are out.
                 if sent >= next_second:
                     rejected = self._second(rejected)
