@@ -234,7 +234,7 @@ def print_result(result: dict, duration: float) -> None:
           f"(p99 {gc_pause['p99']} us, max {gc_pause['max']} us, "
           f"{counters['gc_full_collections']} full)")
     for line in result["log"].splitlines():  # when each miss happened, and its cause
-        if "deadline miss" in line:
+        if line.startswith("slipd: deadline miss "):
             print(f"    {line}")
     print(f"  CPU {fig['cpu_percent']:.1f} % of one core, RSS {fig['rss_mb']:.0f} MB (peak "
           f"{fig['rss_peak_mb']:.0f} MB; anonymous {fig['rss_anon_mb']:.0f} MB, file-backed "
