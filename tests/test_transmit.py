@@ -92,10 +92,18 @@ def test_daemon_sends_its_recorded_frames_through_the_writer(tmp_path):
                           channel=channel, duration=1.2, recorder=tmp_path / "recorder.log")
     daemon = Daemon(config, log=lambda *_: None)
     received = []
+    finished = threading.Event()
 
     def listen():  # as it arrives: a unix datagram queue holds only a few frames
-        while (message := listener.recv(1.0)) is not None:
-            received.append(f"{message.arbitration_id:03X}#{message.data.hex().upper()}")
+        # until the daemon has stopped (a cold numba cache compiles for seconds before the
+        # first frame), then what is still queued
+        while True:
+            stopped = finished.is_set()
+            message = listener.recv(0.2)
+            if message is not None:
+                received.append(f"{message.arbitration_id:03X}#{message.data.hex().upper()}")
+            elif stopped:
+                return
 
     reader = threading.Thread(target=listen)
     reader.start()
@@ -103,6 +111,7 @@ def test_daemon_sends_its_recorded_frames_through_the_writer(tmp_path):
         assert daemon._write_frame is not None
         daemon.run()
     finally:
+        finished.set()
         reader.join()
         listener.shutdown()
     assert daemon.bus.dropped == 0
