@@ -37,7 +37,8 @@ from pathlib import Path
 
 import can
 
-CAN_EFF_FLAG = 0x80000000
+from slipd.daemon.transmit import CAN_EFF_FLAG
+
 CAN_RTR_FLAG = 0x40000000
 CAN_ERR_FLAG = 0x20000000
 CANFD_BRS = 0x01
