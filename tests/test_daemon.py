@@ -140,11 +140,8 @@ def test_state_frames_at_100_hz_and_recorder_replays_byte_for_byte(tmp_path, est
     if stall_s:  # the stall skipped ticks: the replay below must step through them too
         assert counters["deadline_misses"] >= 4 and np.max(np.round(gaps)) >= 5
         assert counters["gc_full_collections"] >= 1 and final["gc_pause_us"]["count"] >= 1
-        # the miss is logged with what caused it: this tick woke late, it did not run long
         misses = [line for line in daemon.logged if "deadline miss" in line]
-        assert misses and len(misses) <= 3  # at most one line a second
-        woke_late = float(misses[0].split("woke ")[1].split(" ms")[0])
-        assert woke_late >= stall_s * 1e3 - 10.0
+        assert misses and len(misses) <= 3  # logged, at most one line a second
     # the recorder log, replayed, gives the same SLIPD_STATE/AUX bytes
     inputs = latch_log_or_recording(frames, PROFILE)
     estimate = run_method(inputs, PROFILE, estimator)
@@ -371,6 +368,24 @@ def test_the_daemon_log_reaches_a_pipe_while_it_runs():
     finally:
         daemon.terminate()
         daemon.wait(60)
+
+
+def test_a_deadline_miss_is_logged_with_its_cause_at_most_once_a_second():
+    logged: list[str] = []
+    daemon = Daemon(DaemonConfig(profile=PROFILE, interface="virtual", channel="unused"),
+                    bus=can.Bus(interface="virtual", channel="miss-log"), log=logged.append)
+    try:
+        daemon.started_at = 100.0
+        daemon._report_miss(woke=100.060, sent=100.062, cycle_us=62_000.0, skipped=5)
+        daemon._report_miss(woke=100.5, sent=100.52, cycle_us=20_000.0, skipped=1)  # counted
+        daemon._report_miss(woke=101.203, sent=101.215, cycle_us=15_000.0, skipped=0)
+    finally:
+        daemon.bus.shutdown()
+    assert len(logged) == 2
+    assert "0.062 s after start" in logged[0] and "woke 60.00 ms late" in logged[0]
+    assert "tick 2.00 ms" in logged[0] and "5 tick(s) skipped" in logged[0]
+    assert "woke 3.00 ms late, tick 12.00 ms" in logged[1]
+    assert "2 more since the last report" in logged[1]
 
 
 def test_a_tick_after_skipped_ticks_steps_once_per_elapsed_tick():
