@@ -302,13 +302,20 @@ def _parse_message(path: Path, name: str, spec: dict) -> MessageMap:
     )
 
 
-def load_profile(name_or_path: str | Path = "default") -> Profile:
-    """Load and validate a vehicle profile (a shipped name or a TOML path)."""
+def load_profile(name_or_path: str | Path = "default", edit=None) -> Profile:
+    """Load and validate a vehicle profile (a shipped name or a TOML path).
+
+    ``edit``, when given, is called with the parsed TOML document before it is validated and
+    may change it in place: how ``slipd eval --mismatch`` gives an estimator a wrong car
+    (every derived value, e.g. the steering-ratio factor of the steer channel, follows).
+    """
     path = resolve_profile_path(name_or_path)
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    if edit is not None:
+        edit(doc)
     top = _Reader(path, doc, "")
     head = _Reader(path, top.get("profile", dict, what="a [profile] table"), "profile")
     name = head.get("name", str)
