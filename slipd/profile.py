@@ -323,8 +323,12 @@ def load_profile(name_or_path: str | Path = "default", edit=None) -> Profile:
     dbc_name = head.get("dbc", str, what="the DBC file, relative to the profile")
     head.no_unknown()
     dbc_path = (path.parent / dbc_name).resolve()
+    if not dbc_path.exists() and (PROFILE_DIR / dbc_name).is_file():
+        dbc_path = PROFILE_DIR / dbc_name  # a shipped DBC (slipd.dbc) by name, from anywhere
     if not dbc_path.exists():
-        raise ConfigError(f"{path}: [profile] dbc = {dbc_name!r}: {dbc_path} does not exist")
+        raise ConfigError(f"{path}: [profile] dbc = {dbc_name!r}: {dbc_path} does not exist "
+                          f"(nor is it a shipped DBC: "
+                          f"{sorted(p.name for p in PROFILE_DIR.glob('*.dbc'))})")
     vehicle = _load_vehicle(path, doc)
     top.used.add("vehicle")
     message_table = top.get("messages", dict, what="a [messages.NAME] table per input message")

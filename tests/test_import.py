@@ -267,3 +267,49 @@ def test_import_command_then_replay(drive, tmp_path, capsys):
         == 0
     )
     assert (tmp_path / "out.csv").read_text().count("\n") > 250
+
+
+def test_truth_columns_become_the_logs_truth_csv_that_eval_reads(tmp_path, capsys):
+    """--truth writes LOG.truth.csv on the log's time axis (epoch included), with units and
+    signs applied; eval finds it beside the log, and zero's beta error is the truth itself."""
+    from slipd.replay.importer import parse_truth, truth_path
+    from slipd.sim.writer import read_truth_csv
+
+    t = np.arange(0.0, 20.0, 0.01)
+    beta_deg = 2.0 * np.sin(2.0 * np.pi * t / 10.0)  # two whole periods
+    source = tmp_path / "ref.csv"
+    columns = {
+        "time": t, "ax": np.zeros_like(t), "ay": np.zeros_like(t), "yaw": np.zeros_like(t),
+        "steer": np.zeros_like(t), "v_kmh": np.full_like(t, 72.0), "beta_deg": beta_deg,
+    }
+    header = ",".join(columns)
+    rows = np.column_stack(list(columns.values()))
+    source.write_text(header + "\n" + "\n".join(",".join(f"{v:.9g}" for v in r) for r in rows))
+    log = tmp_path / "ref.log"
+    report = import_table(
+        source, PROFILE, parse_map(["ax=ax,ay=ay,yaw=yaw_rate,steer=steer"]), log, epoch=1000.0,
+        derive=["wheel-speeds"], speed_spec="v_kmh:km/h",
+        truth=parse_truth(["beta=-beta_deg:deg,vx=v_kmh:km/h"]))
+    assert report.truth_rows == t.size
+    truth, epoch = read_truth_csv(truth_path(log))
+    assert epoch == 1000.0 and truth["t"][0] == 0.0
+    assert np.allclose(truth["beta"], -np.radians(beta_deg), atol=1e-8)
+    assert np.allclose(truth["vx"], 20.0)
+    assert json.loads(sidecar_path(log).read_text())["truth"] == ["beta=-beta_deg:deg",
+                                                                  "vx=v_kmh:km/h"]
+    assert main(["eval", str(log), "--estimator", "zero", "--json"]) == 0
+    zero = json.loads(capsys.readouterr().out)["estimators"]["zero"]
+    assert zero["beta_rms_deg"] == pytest.approx(2.0 / math.sqrt(2.0), rel=0.02)
+
+
+@pytest.mark.parametrize("spec, expected", [
+    ("beta=b", "needs at least beta and vx"),
+    ("beta=b,vx=v,beta=c", "given twice"),
+    ("slip=b,vx=v", "NAME one of"),
+    ("beta=b:furlong,vx=v", "unknown unit"),
+])
+def test_bad_truth_maps_are_clear_errors(spec, expected):
+    from slipd.replay.importer import parse_truth
+
+    with pytest.raises(ConfigError, match=expected):
+        parse_truth([spec])

@@ -33,6 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "sidecar); needs --speed or a column mapped to speed_ref")
     parser.add_argument("--speed", metavar="COLUMN[:UNIT]",
                         help="vehicle speed column for --derive wheel-speeds")
+    parser.add_argument("--truth", action="append", default=[], metavar="NAME=COLUMN[:UNIT],...",
+                        help="reference-sensor columns to write as the log's truth CSV "
+                             "(LOG.truth.csv, what slipd eval reads): beta and vx at least, "
+                             "also vy, speed, yaw_rate, ...")
     parser.add_argument("--interface", default="can0", help="interface name in the log")
     parser.add_argument("--out", type=Path, required=True, metavar="LOG",
                         help="candump -L log to write (LOG.meta.json is written beside it)")
@@ -44,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
         import_table,
         parse_constants,
         parse_map,
+        parse_truth,
         sidecar_path,
     )
 
@@ -51,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
         args.source, load_profile(args.profile), parse_map(args.map), args.out,
         time_spec=args.time, epoch=args.epoch, constants=parse_constants(args.constant),
         derive=args.derive, speed_spec=args.speed, interface=args.interface,
+        truth=parse_truth(args.truth),
     )
     print(f"{args.source} -> {args.out}: {report.summary()}")
     print(f"provenance: {sidecar_path(args.out)}")

@@ -107,6 +107,59 @@ def parse_constants(entries: list[str]) -> dict[In, float]:
     return constants
 
 
+#: Truth columns ``slipd import --truth`` accepts (the simulator's truth CSV names, SI).
+TRUTH_CHANNELS = {"beta": "rad", "vx": "m/s", "vy": "m/s", "speed": "m/s",
+                  "yaw_rate": "rad/s", "roll": "rad", "pitch": "rad", "ax": "m/s^2",
+                  "ay": "m/s^2", "mu": "", "steer": "rad"}
+
+
+@dataclass(frozen=True)
+class TruthMap:
+    """``--truth name=column[:unit]``: a reference-sensor column as a truth column."""
+
+    name: str
+    column: str
+    unit: str
+    sign: float
+
+    def spec(self) -> str:
+        sign = "-" if self.sign < 0 else ""
+        return f"{self.name}={sign}{self.column}" + (f":{self.unit}" if self.unit else "")
+
+
+def parse_truth(entries: list[str]) -> list[TruthMap]:
+    """Parse ``--truth`` entries: ``beta=beta_rad,vx=vx_mps,...``; beta and vx are required
+    (eval scores beta and needs the speed to select the ticks)."""
+    maps: list[TruthMap] = []
+    for entry in entries:
+        for item in filter(None, (part.strip() for part in entry.split(","))):
+            name, sep, target = item.partition("=")
+            column, _, unit = target.partition(":")
+            sign = 1.0
+            if column.startswith("-"):
+                sign, column = -1.0, column[1:]
+            if not sep or not column or name not in TRUTH_CHANNELS:
+                raise ConfigError(f"--truth {item!r}: expected NAME=COLUMN[:UNIT] with NAME one "
+                                  f"of {sorted(TRUTH_CHANNELS)}")
+            if unit not in UNITS:
+                raise ConfigError(f"--truth {item!r}: unknown unit {unit!r}; expected one of "
+                                  f"{sorted(u for u in UNITS if u)}")
+            maps.append(TruthMap(name, column, unit, sign))
+    names = [m.name for m in maps]
+    if maps and not {"beta", "vx"} <= set(names):
+        raise ConfigError(f"--truth {','.join(entries)}: needs at least beta and vx (eval scores "
+                          "beta where the speed is above its threshold)")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--truth: a truth column is given twice: {names}")
+    return maps
+
+
+def truth_path(log: Path) -> Path:
+    """Where the truth of ``log`` goes: LOG without .log + .truth.csv (what eval looks for)."""
+    stem = log.name[: -len(".log")] if log.name.endswith(".log") else log.name
+    return log.with_name(stem + ".truth.csv")
+
+
 # ---- reading tables
 
 
@@ -205,6 +258,8 @@ class ImportReport:
     clamped: dict[str, int] = field(default_factory=dict)
     derived: dict[str, str] = field(default_factory=dict)
     rate_notes: list[str] = field(default_factory=list)
+    truth_rows: int = 0
+    truth_path: str = ""
 
     def summary(self) -> str:
         lines = [f"{self.rows} rows -> {self.frames} frames"]
@@ -219,6 +274,8 @@ class ImportReport:
                          "clamped")
         for channel, how in self.derived.items():
             lines.append(f"  derived on request: {channel} = {how}")
+        if self.truth_path:
+            lines.append(f"  truth: {self.truth_rows} rows -> {self.truth_path}")
         return "\n".join(lines)
 
 
@@ -292,8 +349,10 @@ def _hold(values: np.ndarray) -> np.ndarray:
 def import_table(source: Path, profile: Profile, maps: list[ColumnMap], out: Path,
                  time_spec: str | None = None, epoch: float = 0.0,
                  constants: dict[In, float] | None = None, derive: list[str] | None = None,
-                 speed_spec: str | None = None, interface: str = "can0") -> ImportReport:
-    """Encode the mapped columns of ``source`` into the candump log ``out`` (+ sidecar)."""
+                 speed_spec: str | None = None, interface: str = "can0",
+                 truth: list[TruthMap] | None = None) -> ImportReport:
+    """Encode the mapped columns of ``source`` into the candump log ``out`` (+ sidecar), and
+    the ``truth`` columns into the truth CSV beside it (:func:`truth_path`)."""
     from slipd.codec import Codec
     from slipd.replay.candump import write_candump
 
@@ -376,8 +435,34 @@ def import_table(source: Path, profile: Profile, maps: list[ColumnMap], out: Pat
     report.frames = write_candump(out, all_t[order], np.concatenate(ids)[order],
                                   np.concatenate(payloads)[order], np.concatenate(dlcs)[order],
                                   interface=interface)
-    _write_sidecar(out, source, profile, maps, time_spec, epoch, report)
+    if truth:
+        _write_truth(out, source, table, t - epoch, epoch, truth, report)
+    _write_sidecar(out, source, profile, maps, time_spec, epoch, report, truth or [])
     return report
+
+
+def _write_truth(out: Path, source: Path, table: dict[str, np.ndarray], t: np.ndarray,
+                 epoch: float, truth: list[TruthMap], report: ImportReport) -> None:
+    from slipd.sim.writer import write_truth_columns
+
+    columns = {"t": t}
+    for m in truth:
+        if m.column not in table:
+            raise ConfigError(f"--truth {m.spec()}: {source} has no column {m.column!r}; "
+                              f"columns: {sorted(table)}")
+        columns[m.name] = table[m.column] * UNITS[m.unit] * m.sign
+    rows = np.ones(len(t), dtype=bool)
+    for name, values in columns.items():
+        rows &= np.isfinite(values)
+    if not rows.any():
+        raise ConfigError(f"--truth: no row of {source} has every truth column")
+    path = truth_path(out)
+    write_truth_columns(path, {k: v[rows] for k, v in columns.items()}, epoch, [
+        f"slipd import truth: source={source.name}",
+        "reference sensor columns, SI units, ISO 8855 axes: " + ", ".join(m.spec() for m in truth),
+    ])
+    report.truth_rows = int(rows.sum())
+    report.truth_path = str(path)
 
 
 def _speed_column(table, speed_spec: str | None, maps: list[ColumnMap], source: Path
@@ -418,7 +503,8 @@ def _count_clamped(db, profile: Profile, message: str, values: dict[In, np.ndarr
 
 
 def _write_sidecar(out: Path, source: Path, profile: Profile, maps: list[ColumnMap],
-                   time_spec: str | None, epoch: float, report: ImportReport) -> None:
+                   time_spec: str | None, epoch: float, report: ImportReport,
+                   truth: list[TruthMap]) -> None:
     from slipd.cli import _version
 
     digest = hashlib.sha256(source.read_bytes()).hexdigest()
@@ -430,6 +516,8 @@ def _write_sidecar(out: Path, source: Path, profile: Profile, maps: list[ColumnM
         "time": time_spec or "auto",
         "epoch": epoch,
         "map": [m.spec() for m in maps],
+        "truth": [m.spec() for m in truth],
+        "truth_file": report.truth_path or None,
         "derived_on_request": report.derived,
         "messages": report.messages,
         "left_out": report.left_out,

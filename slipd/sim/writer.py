@@ -97,3 +97,19 @@ def write_log(path: str | Path, result: SimResult, profile, epoch: float = START
 
     t, frame_id, data, dlc = encode_frames(result, profile, epoch)
     return write_candump(path, t, frame_id, data, dlc, interface="can0")
+
+
+def write_truth_columns(path: str | Path, columns: dict[str, np.ndarray], epoch: float,
+                        comments: list[str]) -> None:
+    """A truth CSV from columns other than a simulation's (``slipd import --truth``), in the
+    format :func:`read_truth_csv` reads: ``t`` from the log epoch, SI units, ISO 8855."""
+    names = list(columns)
+    header = [f"# {line}" for line in comments] + [
+        f"# log_epoch = {epoch:.6f}  (log time = log_epoch + t)",
+        "# columns: " + ", ".join(f"{c} [{TRUTH_UNITS.get(c, '?')}]" for c in names),
+        ",".join(names),
+    ]
+    data = np.column_stack([np.asarray(columns[c], dtype=np.float64) for c in names])
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write("\n".join(header) + "\n")
+        np.savetxt(fh, data, fmt="%.9g", delimiter=",")
