@@ -452,7 +452,7 @@ def _write_truth(out: Path, source: Path, table: dict[str, np.ndarray], t: np.nd
                               f"columns: {sorted(table)}")
         columns[m.name] = table[m.column] * UNITS[m.unit] * m.sign
     rows = np.ones(len(t), dtype=bool)
-    for name, values in columns.items():
+    for values in columns.values():
         rows &= np.isfinite(values)
     if not rows.any():
         raise ConfigError(f"--truth: no row of {source} has every truth column")
