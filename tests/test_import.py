@@ -272,8 +272,8 @@ def test_import_command_then_replay(drive, tmp_path, capsys):
 def test_truth_columns_become_the_logs_truth_csv_that_eval_reads(tmp_path, capsys):
     """--truth writes LOG.truth.csv on the log's time axis (epoch included), with units and
     signs applied; eval finds it beside the log, and zero's beta error is the truth itself."""
-    from slipd.replay.importer import parse_truth, truth_path
-    from slipd.sim.writer import read_truth_csv
+    from slipd.replay.importer import parse_truth
+    from slipd.sim.writer import read_truth_csv, truth_path_of
 
     t = np.arange(0.0, 20.0, 0.01)
     beta_deg = 2.0 * np.sin(2.0 * np.pi * t / 10.0)  # two whole periods
@@ -291,7 +291,7 @@ def test_truth_columns_become_the_logs_truth_csv_that_eval_reads(tmp_path, capsy
         derive=["wheel-speeds"], speed_spec="v_kmh:km/h",
         truth=parse_truth(["beta=-beta_deg:deg,vx=v_kmh:km/h"]))
     assert report.truth_rows == t.size
-    truth, epoch = read_truth_csv(truth_path(log))
+    truth, epoch = read_truth_csv(truth_path_of(log))
     assert epoch == 1000.0 and truth["t"][0] == 0.0
     assert np.allclose(truth["beta"], -np.radians(beta_deg), atol=1e-8)
     assert np.allclose(truth["vx"], 20.0)

@@ -15,11 +15,11 @@ import argparse
 import json
 import math
 import sys
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from slipd.errors import ConfigError
-from slipd.eval.metrics import KPH, Accumulator, Errors, Scores, errors, format_table
+from slipd.eval.metrics import Accumulator, format_table
+from slipd.eval.runs import CaseResult, LogCase, evaluate_logs, jsonable, suite_logs, truth_of
 
 NOMINAL = "nominal"
 
@@ -59,69 +59,6 @@ def _methods(spec: str) -> list[str]:
     return chosen
 
 
-def evaluate_log(log: Path, truth_path: Path, methods: list[str], profile,
-                 min_speed_kph: float) -> tuple[dict[str, Errors], dict]:
-    """Errors per method on one log, plus what the plot needs."""
-    from slipd.replay.engine import run_log
-    from slipd.sim.writer import read_truth_csv
-
-    if not log.exists():
-        raise ConfigError(f"{log}: no such log")
-    if not truth_path.exists():
-        raise ConfigError(f"{truth_path}: no such truth file")
-    truth, epoch = read_truth_csv(truth_path)
-    truth_t = truth["t"] + epoch
-    speed = truth.get("speed")
-    estimates = run_log(log, profile, methods)
-    result: dict[str, Errors] = {}
-    series = {}
-    for name in methods:
-        est = estimates[name]
-        result[name] = errors(est.t, est.out, truth_t, truth["beta"], truth["vx"], speed,
-                              min_speed=min_speed_kph * KPH)
-        series[name] = (est.t - epoch, est.out)
-    return result, {"truth_t": truth["t"], "truth_beta": truth["beta"], "series": series}
-
-
-def _truth_of(log: Path) -> Path:
-    return log.with_name(log.name[: -len(".log")] + ".truth.csv") if log.name.endswith(
-        ".log") else log.with_name(log.name + ".truth.csv")
-
-
-@dataclass
-class CaseResult:
-    """Scores of one profile (nominal or a mismatch case) over the run's logs."""
-
-    name: str
-    description: str
-    logs: dict[str, dict[str, Scores]] = field(default_factory=dict)
-    pooled: dict[str, Accumulator] = field(default_factory=dict)
-
-    def overall(self) -> dict[str, Scores]:
-        return {m: acc.scores() for m, acc in self.pooled.items()}
-
-
-def _jsonable(rows: dict[str, Scores]) -> dict:
-    def clean(d: dict) -> dict:
-        return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in d.items()}
-
-    return {"estimators": {name: clean(s.as_dict()) for name, s in rows.items()}}
-
-
-def _evaluate_case(name: str, description: str, logs: list[tuple[str, Path, Path]],
-                   methods: list[str], profile, min_speed: float, keep_plot: bool
-                   ) -> tuple[CaseResult, dict | None, dict[str, Errors] | None]:
-    case = CaseResult(name, description, pooled={m: Accumulator() for m in methods})
-    plot_data = single = None
-    for log_name, log, truth in logs:
-        errs, plot_data = evaluate_log(log, truth, methods, profile, min_speed)
-        case.logs[log_name] = {m: e.scores() for m, e in errs.items()}
-        for m, e in errs.items():
-            case.pooled[m].add(e)
-        single = errs if keep_plot else None
-    return case, (plot_data if keep_plot else None), single
-
-
 def run(args: argparse.Namespace) -> int:
     from slipd.eval.mismatch import CASES, parse_cases
     from slipd.profile import load_profile
@@ -137,27 +74,21 @@ def run(args: argparse.Namespace) -> int:
     if args.suite is not None:
         if args.log is not None:
             raise ConfigError("give either a LOG or --suite DIR, not both")
-        if not args.suite.is_dir():
-            raise ConfigError(f"--suite {args.suite}: not a directory")
-        found = sorted(p for p in args.suite.glob("*.log") if _truth_of(p).exists())
-        if not found:
-            raise ConfigError(f"{args.suite}: no *.log with a matching *.truth.csv")
-        logs = [(p.name[: -len(".log")], p, _truth_of(p)) for p in found]
+        logs = suite_logs(args.suite)
     else:
         if args.log is None:
             raise ConfigError("name a LOG (with --truth TRUTH) or use --suite DIR")
-        logs = [(args.log.name, args.log, args.truth or _truth_of(args.log))]
+        logs = [LogCase(args.log.name, args.log, args.truth or truth_of(args.log))]
     single_plot = args.plot is not None and args.suite is None and not cases
 
-    nominal, plot_data, single = _evaluate_case(
-        NOMINAL, "the profile as given", logs, methods, load_profile(args.profile),
-        args.min_speed, single_plot)
+    nominal, plot_data, single = evaluate_logs(logs, methods, load_profile(args.profile),
+                                               args.min_speed, keep_last=single_plot)
     results = [nominal]
     for case in cases:
         print(f"mismatch {case.name}: {case.description}", file=sys.stderr)
         perturbed = load_profile(args.profile, edit=case.edit())
-        results.append(_evaluate_case(case.name, case.description, logs, methods, perturbed,
-                                      args.min_speed, False)[0])
+        results.append(evaluate_logs(logs, methods, perturbed, args.min_speed, case.name,
+                                     case.description)[0])
     mismatch_pooled = {m: Accumulator() for m in methods}
     for case in results[1:]:
         for m in methods:
@@ -183,17 +114,17 @@ def _document(args, methods, logs, results: list[CaseResult], mismatch_pooled) -
     doc: dict = {"profile": str(args.profile), "min_speed_kph": args.min_speed,
                  "estimators_evaluated": methods}
     if args.suite is None and len(logs) == 1:
-        doc.update(_jsonable(nominal.overall()))
-        doc["log"] = str(logs[0][1])
+        doc.update(jsonable(nominal.overall()))
+        doc["log"] = str(logs[0].log)
     else:
-        doc["scenarios"] = {name: _jsonable(rows) for name, rows in nominal.logs.items()}
-        doc["overall"] = _jsonable(nominal.overall())
+        doc["scenarios"] = {name: jsonable(rows) for name, rows in nominal.logs.items()}
+        doc["overall"] = jsonable(nominal.overall())
     if mismatch_pooled is not None:
         doc["mismatch"] = {
-            "cases": {c.name: {"description": c.description, **_jsonable(c.overall()),
-                               "scenarios": {n: _jsonable(r) for n, r in c.logs.items()}}
+            "cases": {c.name: {"description": c.description, **jsonable(c.overall()),
+                               "scenarios": {n: jsonable(r) for n, r in c.logs.items()}}
                       for c in results[1:]},
-            "pooled": _jsonable({m: a.scores() for m, a in mismatch_pooled.items()}),
+            "pooled": jsonable({m: a.scores() for m, a in mismatch_pooled.items()}),
         }
     return doc
 
@@ -202,7 +133,7 @@ def _print_tables(args, logs, results: list[CaseResult], mismatch_pooled, single
     nominal = results[0]
     speed = f"truth speed > {args.min_speed:g} km/h"
     if args.suite is None and len(logs) == 1:
-        print(format_table(nominal.overall(), title=f"== {logs[0][0]} ({speed})"))
+        print(format_table(nominal.overall(), title=f"== {logs[0].name} ({speed})"))
         skipped = {m: e.rejected_nonfinite for m, e in (single or {}).items()
                    if e.rejected_nonfinite}
         if skipped:
@@ -231,12 +162,12 @@ def _plot(args, logs, results: list[CaseResult], mismatch_pooled, plot_data, sin
 
     if plot_data is not None and single is not None:
         plots.plot_evaluation(args.plot, plot_data["truth_t"], plot_data["truth_beta"],
-                              plot_data["series"], single, title=logs[0][0])
+                              plot_data["series"], single, title=logs[0].name)
         return
     groups = {name: rows for name, rows in results[0].logs.items()}
     if mismatch_pooled is not None:
         groups = {c.name: c.overall() for c in results}
         title = f"mismatch cases ({len(logs)} log(s) pooled per case)"
     else:
-        title = f"suite {args.suite}" if args.suite is not None else logs[0][0]
+        title = f"suite {args.suite}" if args.suite is not None else logs[0].name
     plots.plot_summary(args.plot, groups, title=title)

@@ -154,12 +154,6 @@ def parse_truth(entries: list[str]) -> list[TruthMap]:
     return maps
 
 
-def truth_path(log: Path) -> Path:
-    """Where the truth of ``log`` goes: LOG without .log + .truth.csv (what eval looks for)."""
-    stem = log.name[: -len(".log")] if log.name.endswith(".log") else log.name
-    return log.with_name(stem + ".truth.csv")
-
-
 # ---- reading tables
 
 
@@ -443,7 +437,7 @@ def import_table(source: Path, profile: Profile, maps: list[ColumnMap], out: Pat
 
 def _write_truth(out: Path, source: Path, table: dict[str, np.ndarray], t: np.ndarray,
                  epoch: float, truth: list[TruthMap], report: ImportReport) -> None:
-    from slipd.sim.writer import write_truth_columns
+    from slipd.sim.writer import truth_path_of, write_truth_columns
 
     columns = {"t": t}
     for m in truth:
@@ -456,7 +450,7 @@ def _write_truth(out: Path, source: Path, table: dict[str, np.ndarray], t: np.nd
         rows &= np.isfinite(values)
     if not rows.any():
         raise ConfigError(f"--truth: no row of {source} has every truth column")
-    path = truth_path(out)
+    path = truth_path_of(out)
     write_truth_columns(path, {k: v[rows] for k, v in columns.items()}, epoch, [
         f"slipd import truth: source={source.name}",
         "reference sensor columns, SI units, ISO 8855 axes: " + ", ".join(m.spec() for m in truth),

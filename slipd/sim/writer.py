@@ -99,6 +99,14 @@ def write_log(path: str | Path, result: SimResult, profile, epoch: float = START
     return write_candump(path, t, frame_id, data, dlc, interface="can0")
 
 
+def truth_path_of(log: str | Path) -> Path:
+    """The truth CSV that belongs to a log: LOG without .log + .truth.csv (slipd sim, slipd
+    import --truth; slipd eval looks there)."""
+    log = Path(log)
+    stem = log.name[: -len(".log")] if log.name.endswith(".log") else log.name
+    return log.with_name(stem + ".truth.csv")
+
+
 def write_truth_columns(path: str | Path, columns: dict[str, np.ndarray], epoch: float,
                         comments: list[str]) -> None:
     """A truth CSV from columns other than a simulation's (``slipd import --truth``), in the
