@@ -1,0 +1,205 @@
+"""The whole accuracy picture in one run: the simulator suite on two sensor seeds, every
+model-mismatch case pooled, every sensor variant pooled, and the real run.
+
+Blocks (each a pooled table of every method: beta RMS and p99 over all scored ticks, the share
+of VALID ticks more than 5 deg off, the 2-sigma coverage of sigma_beta, the VALID share):
+
+* ``suite s0``, ``suite s1``: ``slipd sim --suite`` with sensor seeds 0 and 1, nominal profile;
+* ``mismatch``: every case of slipd.eval.mismatch on the seed-0 suite, pooled over the cases
+  (the per-case tables go to the JSON);
+* ``variant NAME``: each sensor variant of the simulator (``slipd sim --suite --variant NAME``,
+  seed 0), when the checkout has them;
+* ``real``: the Ferrari 250 LM run of ../shared/realdata, imported as the README shows.
+
+The baseline, measured in the same run, is ``zero`` (beta = 0): each block's last column is a
+method's RMS over zero's, so < 1 is better than not estimating at all. Logs are generated once
+into ``--cache`` (default runs/accuracy) and reused; delete the folder to regenerate.
+
+    .venv/bin/python -m benchmarks.accuracy [--blocks suite,mismatch,variants,real]
+        [--estimator all|a,b] [--jobs 2] [--json OUT.json] [--cache DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from slipd.eval.metrics import Accumulator, Scores
+from slipd.eval.runs import CaseResult, LogCase, evaluate_logs, jsonable, suite_logs
+
+ROOT = Path(__file__).resolve().parent.parent
+REAL_CSV = ROOT.parent / "shared" / "realdata" / "revs_250lm" / "revs_250lm.csv"
+REAL_PROFILE = ROOT / "examples" / "revs_250lm" / "ferrari_250lm.toml"
+#: ``slipd import`` arguments of the real run (the README's recipe, step 4).
+REAL_IMPORT = dict(
+    time="t_s:s",
+    map=["ax_cog_mps2=ax,ay_cog_mps2=ay,yaw_rate_radps=yaw_rate,steer_road_rad=steer"],
+    speed="vx_mps:m/s",
+    truth=["beta=beta_rad,vx=vx_mps,vy=vy_mps,yaw_rate=yaw_rate_radps"],
+)
+SEEDS = (0, 1)
+BLOCKS = ("suite", "mismatch", "variants", "real")
+
+
+def simulate_suite(folder: Path, seed: int, variant: str | None = None) -> Path:
+    """``slipd sim --suite`` into ``folder`` unless it is there already (the CLI, as a user
+    runs it, so a variant is made exactly as documented)."""
+    if folder.is_dir() and any(folder.glob("*.truth.csv")) and (folder / ".complete").exists():
+        return folder
+    command = [sys.executable, "-m", "slipd", "sim", "--suite", "--seed", str(seed),
+               "--out", str(folder)]
+    if variant:
+        command += ["--variant", variant]
+    print(f"simulating: {' '.join(command[2:])}", file=sys.stderr)
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    (folder / ".complete").touch()
+    return folder
+
+
+def import_real(folder: Path) -> LogCase | None:
+    """The real run as a bus log plus truth (README recipe), or None without the data."""
+    from slipd.profile import load_profile
+    from slipd.replay.importer import import_table, parse_map, parse_truth
+    from slipd.sim.writer import truth_path_of
+
+    if not REAL_CSV.exists():
+        print(f"real run skipped: {REAL_CSV} not found", file=sys.stderr)
+        return None
+    log = folder / "revs_250lm.log"
+    if not log.exists() or not truth_path_of(log).exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        import_table(REAL_CSV, load_profile(REAL_PROFILE), parse_map(REAL_IMPORT["map"]), log,
+                     time_spec=REAL_IMPORT["time"], derive=["wheel-speeds"],
+                     speed_spec=REAL_IMPORT["speed"], truth=parse_truth(REAL_IMPORT["truth"]))
+    return LogCase("revs_250lm", log, truth_path_of(log))
+
+
+def variant_names() -> list[str]:
+    try:
+        from slipd.sim.variants import VARIANTS
+    except ImportError:
+        print("sensor variants skipped: this checkout has no slipd.sim.variants", file=sys.stderr)
+        return []
+    return list(VARIANTS)
+
+
+def _job(job: tuple) -> tuple[str, CaseResult, float]:
+    block, logs, methods, profile, case_name = job
+    from slipd.eval.mismatch import CASES
+    from slipd.profile import load_profile
+
+    started = time.perf_counter()
+    edit = CASES[case_name].edit() if case_name else None
+    case = CASES.get(case_name) if case_name else None
+    result, _, _ = evaluate_logs(logs, methods, load_profile(profile, edit=edit),
+                                 name=case_name or block,
+                                 description=case.description if case else block)
+    return block, result, time.perf_counter() - started
+
+
+def _row(name: str, s: Scores, zero_rms: float) -> str:
+    def f(v: float, fmt: str, scale: float = 1.0) -> str:
+        width = int(fmt.split(".")[0])
+        return f"{'-':>{width}s}" if v is None or math.isnan(v) else format(v * scale, fmt)
+
+    ratio = s.beta_rms_deg / zero_rms if zero_rms and not math.isnan(zero_rms) else math.nan
+    return (f"  {name:22s} {f(s.beta_rms_deg, '8.3f')} {f(s.beta_p99_deg, '8.3f')} "
+            f"{f(s.valid_fraction, '6.1f', 100)} {f(s.valid_err_over_5deg, '7.2f', 100)} "
+            f"{f(s.valid_err_over_2deg, '7.2f', 100)} {f(s.sigma2_coverage, '7.1f', 100)} "
+            f"{f(ratio, '6.2f')}")
+
+
+def print_block(title: str, rows: dict[str, Scores]) -> None:
+    print(f"== {title}")
+    print(f"  {'estimator':22s} {'rms':>8s} {'p99':>8s} {'valid':>6s} {'V>5deg':>7s} "
+          f"{'V>2deg':>7s} {'2sigcov':>7s} {'/zero':>6s}")
+    print(f"  {'':22s} {'[deg]':>8s} {'[deg]':>8s} {'[%]':>6s} {'[%]':>7s} {'[%]':>7s} "
+          f"{'[%]':>7s} {'':>6s}")
+    zero = rows.get("zero")
+    zero_rms = zero.beta_rms_deg if zero else math.nan
+    for name, s in rows.items():
+        print(_row(name, s, zero_rms))
+    print()
+
+
+def main(argv: list[str] | None = None) -> int:
+    from slipd.commands.eval import _methods
+    from slipd.eval.mismatch import CASES
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--blocks", default=",".join(BLOCKS),
+                        help=f"comma-separated subset of {','.join(BLOCKS)}")
+    parser.add_argument("--estimator", default="all")
+    parser.add_argument("--jobs", type=int, default=2, help="evaluation processes (default 2)")
+    parser.add_argument("--cache", type=Path, default=ROOT / "runs" / "accuracy")
+    parser.add_argument("--json", type=Path, help="write every table (and per case) as JSON")
+    args = parser.parse_args(argv)
+    blocks = [b.strip() for b in args.blocks.split(",") if b.strip()]
+    unknown = set(blocks) - set(BLOCKS)
+    if unknown:
+        parser.error(f"unknown block(s) {sorted(unknown)}; expected some of {BLOCKS}")
+    methods = _methods(args.estimator)
+    started = time.perf_counter()
+
+    jobs: list[tuple] = []
+    order: list[str] = []
+    if "suite" in blocks or "mismatch" in blocks:
+        suites = {seed: suite_logs(simulate_suite(args.cache / f"suite_s{seed}", seed))
+                  for seed in SEEDS}
+    if "suite" in blocks:
+        for seed in SEEDS:
+            order.append(f"suite s{seed}")
+            jobs.append((f"suite s{seed}", suites[seed], methods, "default", None))
+    if "mismatch" in blocks:
+        order.append("mismatch")
+        jobs += [("mismatch", suites[0], methods, "default", name) for name in CASES]
+    if "variants" in blocks:
+        for name in variant_names():
+            folder = simulate_suite(args.cache / f"variant_{name}_s0", 0, name)
+            order.append(f"variant {name}")
+            jobs.append((f"variant {name}", suite_logs(folder), methods, "default", None))
+    if "real" in blocks:
+        real = import_real(args.cache / "real")
+        if real is not None:
+            order.append("real")
+            jobs.append(("real", [real], methods, str(REAL_PROFILE), None))
+
+    results: dict[str, list[CaseResult]] = {b: [] for b in order}
+    wall: dict[str, float] = dict.fromkeys(order, 0.0)
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        for block, result, seconds in pool.map(_job, jobs):
+            results[block].append(result)
+            wall[block] += seconds
+
+    doc: dict = {"estimators": methods, "blocks": {}}
+    for block in order:
+        parts = results[block]
+        pooled = {m: Accumulator() for m in methods}
+        for part in parts:
+            for m in methods:
+                pooled[m].merge(part.pooled[m])
+        rows = {m: acc.scores() for m, acc in pooled.items()}
+        label = f"{block} ({len(parts)} cases pooled)" if block == "mismatch" else block
+        logs = sorted({name for part in parts for name in part.logs})
+        print_block(f"{label}: {len(logs)} log(s), {wall[block]:.0f} s of evaluation", rows)
+        doc["blocks"][block] = {
+            **jsonable(rows), "logs": logs,
+            "cases": {p.name: {**jsonable(p.overall()),
+                               "scenarios": {n: jsonable(r) for n, r in p.logs.items()}}
+                      for p in parts},
+        }
+    if args.json:
+        args.json.write_text(json.dumps(doc, indent=2) + "\n")
+    print(f"total {time.perf_counter() - started:.0f} s; V = VALID ticks; /zero = RMS over "
+          "zero's (the baseline of the same run)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
