@@ -54,11 +54,16 @@ def sample_messages(
     latency_base: float,
     latency_spacing: float,
     latency_jitter: float,
+    delays: tuple[float, ...] | list | None = None,
 ) -> dict[str, MessageSamples]:
     """Sample the channels per message at its rate; timestamp = sample time + latency.
 
     Message ``i`` (bus order) leaves ``latency_base + i * latency_spacing`` after its sensor
     sampled, plus |N(0, latency_jitter)|; timestamps of one message stay increasing.
+    ``delays[i]`` (s, default 0) makes message ``i`` carry the values of that much earlier
+    (the sensor's or gateway's processing age) while it keeps its schedule: a multiple of the
+    grid step takes the earlier sample, anything else interpolates linearly between two; before
+    the first sample the first value is held.
     """
     dt = grid_t[1] - grid_t[0] if len(grid_t) > 1 else 0.01
     result: dict[str, MessageSamples] = {}
@@ -81,9 +86,25 @@ def sample_messages(
                 from slipd.errors import ConfigError
 
                 raise ConfigError(f"message {spec.name}: the simulator has no model for {ch.name}")
-            values[ch] = np.ascontiguousarray(channels[ch][idx], dtype=np.float64)
+            delay = float(delays[i]) if delays is not None else 0.0
+            values[ch] = np.ascontiguousarray(
+                _delayed(channels[ch], idx, delay / dt) if delay else channels[ch][idx],
+                dtype=np.float64,
+            )
         result[spec.name] = MessageSamples(spec=spec, t=t, values=values)
     return result
+
+
+def _delayed(signal: np.ndarray, idx: np.ndarray, steps: float) -> np.ndarray:
+    """``signal`` at the fractional grid positions ``idx - steps`` (held at the first sample)."""
+    whole = round(steps)
+    if abs(steps - whole) < 1e-9:
+        return signal[np.maximum(idx - whole, 0)]
+    pos = np.maximum(idx - steps, 0.0)
+    lo = np.minimum(np.floor(pos).astype(np.int64), len(signal) - 1)
+    hi = np.minimum(lo + 1, len(signal) - 1)
+    frac = pos - lo
+    return signal[lo] * (1.0 - frac) + signal[hi] * frac
 
 
 @dataclass

@@ -121,6 +121,63 @@ class SensorConfig:
     steer_ratio: float = DEFAULT_STEER_RATIO
     extra: dict = field(default_factory=dict)
 
+    # --- sensor realism (off by default; slipd.sim.variants names sets of these) ----------
+    # Accelerometer frame: "body" (an ESC unit: specific force in body axes, gravity and body
+    # roll included) or "level" (an INS: acceleration in the levelled heading frame, gravity
+    # removed, so ay carries no g sin(roll) and no bank term; only the yaw part of the
+    # mounting rotation remains, the INS's attitude takes out roll and pitch).
+    accel_frame: str = "body"
+    # Fixed mounting angles of the IMU (roll, pitch, yaw, rad), on top of the random
+    # ``imu_misalignment`` draw.
+    imu_mounting: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # Body vibration as a raw IMU delivers it (slipd.sim.vibration): RMS per axis at the
+    # reference speed (ax, ay, az in m/s^2; roll, pitch, yaw rate in rad/s), and the variance
+    # shares of road broadband, wheel hop, engine orders and wheel order 1.
+    vibration_accel: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    vibration_gyro: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    vibration_shares: tuple[float, float, float, float] = (0.6, 0.1, 0.25, 0.05)
+    # Extra age of the values a message carries (s): the message goes out on its schedule but
+    # holds the value sampled this long before (done in slipd.sim.result.sample_messages).
+    imu_delay: float = 0.0
+    wheel_delay: float = 0.0
+    steer_delay: float = 0.0
+    # ABS tone wheel (slipd.sim.tone_wheel): teeth per revolution (0 = the ideal speed), how the
+    # unit turns edges into a speed ("edge_timing" or "count"), and the longest edge interval
+    # it waits before reporting 0.
+    wheel_teeth: int = 0
+    wheel_speed_method: str = "edge_timing"
+    wheel_edge_timeout: float = 0.1
+    # Fixed steering-wheel angle offset (rad at the steering wheel), on top of the random
+    # ``swa_offset`` draw.
+    swa_bias: float = 0.0
+
+    def __post_init__(self) -> None:
+        from slipd.errors import ConfigError
+        from slipd.sim.tone_wheel import METHODS
+
+        if self.accel_frame not in ("body", "level"):
+            raise ConfigError(
+                f"sensor setting accel_frame={self.accel_frame!r}: expected 'body' or 'level'")
+        if self.wheel_speed_method not in METHODS:
+            raise ConfigError(f"sensor setting wheel_speed_method={self.wheel_speed_method!r}: "
+                              f"expected one of {', '.join(METHODS)}")
+        teeth = self.wheel_teeth
+        if isinstance(teeth, bool) or not isinstance(teeth, (int, np.integer)) or teeth < 0:
+            raise ConfigError(
+                f"sensor setting wheel_teeth={self.wheel_teeth!r}: expected an integer >= 0")
+        for name in ("imu_delay", "wheel_delay", "steer_delay"):
+            if not getattr(self, name) >= 0.0:
+                raise ConfigError(f"sensor setting {name}={getattr(self, name)!r}: expected "
+                                  "a delay >= 0 s")
+        if not self.wheel_edge_timeout > 0.0:
+            raise ConfigError(f"sensor setting wheel_edge_timeout={self.wheel_edge_timeout!r}: "
+                              "expected > 0 s")
+        for name, size in (("imu_mounting", 3), ("vibration_accel", 3), ("vibration_gyro", 3),
+                           ("vibration_shares", 4)):
+            value = getattr(self, name)
+            if np.shape(value) != (size,):
+                raise ConfigError(f"sensor setting {name}={value!r}: expected {size} numbers")
+
 
 def _rx(a: np.ndarray) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
@@ -274,23 +331,61 @@ def imu_specific_force(out: PlantOutput, imu_position) -> tuple[np.ndarray, np.n
     return f_imu, omega
 
 
+def level_acceleration(out: PlantOutput, f_imu: np.ndarray) -> np.ndarray:
+    """What an INS reports for the specific force ``f_imu`` (n, 3, body axes): the acceleration
+    of the IMU point in the levelled heading frame (x the heading in the horizontal plane, y
+    horizontal to the left, z up), gravity removed: R_att f + g_up with R_att the body's roll and
+    pitch on the road and the road's bank and grade (the composition of imu_specific_force)."""
+    x = out.x
+    road_rot = np.einsum("nij,njk->nik", _ry(-out.grade), _rx(out.bank))
+    body_rot = np.einsum(
+        "nij,njk->nik", _ry(PITCH_SIGN * x[:, PITCH]), _rx(ROLL_SIGN * x[:, ROLL])
+    )
+    attitude = np.einsum("nij,njk->nik", road_rot, body_rot)
+    a_level = np.einsum("nij,nj->ni", attitude, f_imu)
+    a_level[:, 2] -= G
+    return a_level
+
+
 def sensor_channels(
-    out: PlantOutput, p, cfg: SensorConfig, rng: np.random.Generator, heading0: float = 0.0
+    out: PlantOutput, p, cfg: SensorConfig, rng: np.random.Generator, heading0: float = 0.0,
+    aux_rng: np.random.Generator | None = None,
 ) -> dict[In, np.ndarray]:
-    """Every input channel on the plant grid, as the sensors report it (before quantisation)."""
+    """Every input channel on the plant grid, as the sensors report it (before quantisation).
+
+    ``rng`` draws the baseline sensor errors in a fixed order. The sensor-realism options
+    (vibration, tone-wheel phases) draw from ``aux_rng`` (default: a child spawned from
+    ``rng``, which leaves ``rng``'s own stream untouched), so switching them on never changes
+    the baseline's draws: a variant differs from its baseline only by its own effect.
+    """
     t = out.t
     n = len(t)
     dt = t[1] - t[0] if n > 1 else 0.01
     ch: dict[In, np.ndarray] = {}
+    if aux_rng is None:
+        aux_rng = rng.spawn(1)[0]
 
     # --- IMU (ESC sensor cluster) --------------------------------------------------------
     f_imu, omega = imu_specific_force(out, cfg.imu_position)
-    mis = rng.normal(0.0, cfg.imu_misalignment, 3)
+    mis = rng.normal(0.0, cfg.imu_misalignment, 3) + np.asarray(cfg.imu_mounting)
     m_rot = _rz(np.array([mis[2]]))[0] @ _ry(np.array([mis[1]]))[0] @ _rx(np.array([mis[0]]))[0]
-    f_imu = f_imu @ m_rot  # rows: R^T v
+    if cfg.accel_frame == "level":  # the INS levels its output: only the heading error stays
+        f_imu = level_acceleration(out, f_imu) @ _rz(np.array([mis[2]]))[0]
+    else:
+        f_imu = f_imu @ m_rot  # rows: R^T v
     omega_imu = omega @ m_rot
     f_imu = _lowpass(f_imu, dt, cfg.imu_bandwidth_hz)
     omega_imu = _lowpass(omega_imu, dt, cfg.imu_bandwidth_hz)
+    if any(cfg.vibration_accel) or any(cfg.vibration_gyro):
+        from slipd.sim.vibration import vibration
+
+        speed = np.hypot(out.x[:, VX], out.x[:, VY])
+        wheel_omega = out.x[:, list(ISO_WHEEL_STATES)]
+        f_imu = f_imu + vibration(aux_rng, t, speed, wheel_omega, p.R_w,
+                                  tuple(cfg.vibration_accel), tuple(cfg.vibration_shares))
+        omega_imu = omega_imu + vibration(aux_rng, t, speed, wheel_omega, p.R_w,
+                                          tuple(cfg.vibration_gyro),
+                                          tuple(cfg.vibration_shares))
     accel_bias = rng.normal(0.0, cfg.accel_bias, 3) + np.asarray(cfg.accel_offset)
     gyro_bias = rng.normal(0.0, cfg.gyro_bias, 3) + np.asarray(cfg.gyro_offset)
     for i, channel in enumerate((In.AX, In.AY, In.AZ)):
@@ -302,10 +397,18 @@ def sensor_channels(
 
     # --- wheel speeds (omega * dynamic radius, unsigned) -------------------------------------
     radius_error = rng.normal(0.0, cfg.wheel_radius_error, 4)
+    if cfg.wheel_teeth:
+        from slipd.sim.tone_wheel import tone_wheel_speed
+
+        tooth_phase = aux_rng.uniform(0.0, 1.0, 4)
     for i, channel in enumerate(
         (In.WHEEL_SPEED_FL, In.WHEEL_SPEED_FR, In.WHEEL_SPEED_RL, In.WHEEL_SPEED_RR)
     ):
-        true = out.x[:, ISO_WHEEL_STATES[i]] * p.R_w * (1.0 + radius_error[i])
+        wheel_omega = out.x[:, ISO_WHEEL_STATES[i]]
+        if cfg.wheel_teeth:
+            wheel_omega = tone_wheel_speed(t, wheel_omega, int(cfg.wheel_teeth), tooth_phase[i],
+                                           cfg.wheel_speed_method, cfg.wheel_edge_timeout)
+        true = wheel_omega * p.R_w * (1.0 + radius_error[i])
         noise = rng.normal(0.0, 1.0, n) * (cfg.wheel_noise_abs + cfg.wheel_noise_rel * true)
         meas = np.abs(true + noise)
         ch[channel] = np.where(true < cfg.wheel_min_speed, 0.0, meas)
@@ -314,7 +417,7 @@ def sensor_channels(
 
     # --- steering (angle sensor at the steering wheel, reported as road-wheel angle) --------
     ratio = cfg.steer_ratio
-    swa_offset = rng.normal(0.0, cfg.swa_offset)
+    swa_offset = rng.normal(0.0, cfg.swa_offset) + cfg.swa_bias
     swa = out.x[:, STEER] * ratio + swa_offset + rng.normal(0.0, cfg.swa_noise, n)
     ch[In.STEER] = swa / ratio
     ch[In.STEER_RATE] = (out.dx[:, STEER] * ratio + rng.normal(0.0, cfg.swa_rate_noise, n)) / ratio
