@@ -1,13 +1,18 @@
 """``slipd sim``: simulate scenarios into candump logs and truth CSVs.
 
-    slipd sim SCENARIO [--vehicle 1|2|3] [--seed N] [--duration S] --out DIR
-    slipd sim --list
-    slipd sim --suite --out DIR [--jobs 2]
+    slipd sim SCENARIO [--vehicle 1|2|3] [--seed N] [--duration S] [--variant NAME] --out DIR
+    slipd sim --list | --list-variants
+    slipd sim --suite --out DIR [--jobs 2] [--variant NAME[,NAME]] [--variant ...]
+
+``--variant`` applies a sensor variant (slipd.sim.variants); names joined by commas apply
+together. Given more than once (or as ``each``: every variant), each goes to DIR/NAME/ and the
+plant is integrated once per scenario for all of them.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import sys
 import time
 from pathlib import Path
@@ -17,7 +22,10 @@ from slipd.errors import ConfigError, DependencyError
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", nargs="?", help="scenario name (see --list)")
-    parser.add_argument("--list", action="store_true", help="list the scenarios and exit")
+    parser.add_argument("--list", action="store_true",
+                        help="list the scenarios and the sensor variants and exit")
+    parser.add_argument("--list-variants", action="store_true",
+                        help="list the sensor variants with their settings and sources, exit")
     parser.add_argument("--suite", action="store_true", help="simulate every scenario")
     parser.add_argument("--vehicle", type=int, choices=(1, 2, 3), default=2,
                         help="CommonRoad parameter set: 1 Ford Escort, 2 BMW 320i, 3 VW Vanagon")
@@ -28,6 +36,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="vehicle profile for the bus layout (default: default)")
     parser.add_argument("--gnss-delay", type=float, default=None, metavar="S",
                         help="GNSS velocity latency (default 0.4 s, as in Yoon et al. 2016)")
+    parser.add_argument("--variant", action="append", default=None, metavar="NAME[,NAME]",
+                        help="sensor variant (see --list-variants); names joined by commas "
+                             "apply together; repeat it (or give 'each') for one output "
+                             "directory per variant, OUT/NAME/")
+    parser.add_argument("--sensor", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one SensorConfig field (SI units, Python literal), "
+                             "e.g. --sensor wheel_speed_method='count'; repeatable")
     parser.add_argument("--out", type=Path, help="output directory")
     parser.add_argument("--jobs", type=int, default=2,
                         help="parallel processes for --suite (default 2)")
@@ -43,37 +58,59 @@ def _require_sim() -> None:
         ) from exc
 
 
-def simulate_to_files(scenario: str, out_dir: Path, vehicle: int = 2, seed: int = 0,
-                      duration: float | None = None, profile: str = "default",
-                      workers: int = 1, progress=None, sensor: dict | None = None) -> dict:
-    """Simulate ``scenario`` and write OUT/SCENARIO.log and OUT/SCENARIO.truth.csv."""
+def simulate_variants_to_files(
+    scenario: str, outputs: list[tuple[str | None, Path]], vehicle: int = 2, seed: int = 0,
+    duration: float | None = None, profile: str = "default", workers: int = 1, progress=None,
+    sensor: dict | None = None,
+) -> list[dict]:
+    """Simulate ``scenario`` once and write, per (variant, directory) of ``outputs``,
+    DIR/SCENARIO.log and DIR/SCENARIO.truth.csv."""
     from slipd.profile import load_profile
-    from slipd.sim import simulate
+    from slipd.sim.core import simulate_variants
     from slipd.sim.writer import write_log, write_truth_csv
 
     start = time.perf_counter()
     prof = load_profile(profile)
-    result = simulate(scenario, vehicle=vehicle, seed=seed, duration=duration, profile=prof,
-                      workers=workers, progress=progress, sensor=sensor)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    frames = write_log(out_dir / f"{scenario}.log", result, prof)
-    write_truth_csv(out_dir / f"{scenario}.truth.csv", result)
-    return {"scenario": scenario, "duration": result.duration, "frames": frames,
-            "wall": time.perf_counter() - start}
+    results = simulate_variants(scenario, [spec for spec, _ in outputs], vehicle=vehicle,
+                                seed=seed, duration=duration, profile=prof, workers=workers,
+                                progress=progress, sensor=sensor)
+    infos = []
+    for (spec, out_dir), result in zip(outputs, results, strict=True):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        frames = write_log(out_dir / f"{scenario}.log", result, prof)
+        write_truth_csv(out_dir / f"{scenario}.truth.csv", result)
+        infos.append({"scenario": scenario, "variant": spec, "duration": result.duration,
+                      "frames": frames, "wall": time.perf_counter() - start})
+    return infos
 
 
-def _suite_job(job: tuple) -> dict:
-    return simulate_to_files(*job)
+def simulate_to_files(scenario: str, out_dir: Path, vehicle: int = 2, seed: int = 0,
+                      duration: float | None = None, profile: str = "default",
+                      workers: int = 1, progress=None, sensor: dict | None = None,
+                      variant: str | None = None) -> dict:
+    """Simulate ``scenario`` and write OUT/SCENARIO.log and OUT/SCENARIO.truth.csv."""
+    return simulate_variants_to_files(scenario, [(variant, out_dir)], vehicle, seed, duration,
+                                      profile, workers, progress, sensor)[0]
 
 
-def run_suite(out_dir: Path, vehicle: int, seed: int, profile: str, jobs: int) -> int:
-    """Every scenario, ``jobs`` processes at a time; the long drive's legs share the pool."""
+def _suite_job(job: tuple) -> list[dict]:
+    return simulate_variants_to_files(*job)
+
+
+def run_suite(out_dir: Path, vehicle: int, seed: int, profile: str, jobs: int,
+              outputs: list[tuple[str | None, Path]] | None = None,
+              sensor: dict | None = None) -> int:
+    """Every scenario, ``jobs`` processes at a time; the long drive's legs share the pool.
+    ``outputs``: (variant, directory) pairs, each written from the same plant run (default:
+    the baseline into ``out_dir``)."""
     from concurrent.futures import ProcessPoolExecutor
 
     from tqdm import tqdm
 
     from slipd.sim import SCENARIOS
 
+    outputs = outputs or [(None, out_dir)]
+    start = time.perf_counter()
     names = list(SCENARIOS)
     total = sum(SCENARIOS[n].duration for n in names)
     done = []
@@ -91,52 +128,116 @@ def run_suite(out_dir: Path, vehicle: int, seed: int, profile: str, jobs: int) -
                     bar.update(step)
                     reached[0] += step
 
-            info = simulate_to_files(name, out_dir, vehicle, seed, None, profile, workers=jobs,
-                                     progress=advance)
-            done.append(info)
+            done.extend(simulate_variants_to_files(name, outputs, vehicle, seed, None, profile,
+                                                   workers=jobs, progress=advance,
+                                                   sensor=sensor))
             bar.update(limit - reached[0])
-        short = [(n, out_dir, vehicle, seed, None, profile, 1) for n in names
+        short = [(n, outputs, vehicle, seed, None, profile, 1, None, sensor) for n in names
                  if n not in long_runs]
         if jobs > 1:
             with ProcessPoolExecutor(max_workers=jobs) as pool:
-                for info in pool.map(_suite_job, short):
-                    done.append(info)
-                    bar.update(round(SCENARIOS[info["scenario"]].duration))
+                for infos in pool.map(_suite_job, short):
+                    done.extend(infos)
+                    bar.update(round(SCENARIOS[infos[0]["scenario"]].duration))
         else:
             for job in short:
-                info = _suite_job(job)
-                done.append(info)
-                bar.update(round(SCENARIOS[info["scenario"]].duration))
+                infos = _suite_job(job)
+                done.extend(infos)
+                bar.update(round(SCENARIOS[infos[0]["scenario"]].duration))
     for info in done:
+        tag = f"  [{info['variant']}]" if info["variant"] else ""
         print(f"{info['scenario']:20s} {info['duration']:8.1f} s simulated  "
-              f"{info['frames']:8d} frames  {info['wall']:6.1f} s wall")
+              f"{info['frames']:8d} frames  {info['wall']:6.1f} s wall{tag}")
+    simulated = sum(info["duration"] for info in done)
+    print(f"suite: {len(names)} scenarios x {len(outputs)} sensor set(s), {simulated:.0f} s "
+          f"simulated in {time.perf_counter() - start:.1f} s wall ({jobs} jobs)")
     return 0
+
+
+def parse_sensor_overrides(items: list[str]) -> dict:
+    """``KEY=VALUE`` strings -> SensorConfig overrides; names the bad item and what is valid."""
+    import dataclasses
+
+    from slipd.sim.sensors import SensorConfig
+
+    fields = {f.name for f in dataclasses.fields(SensorConfig)}
+    overrides = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or key not in fields:
+            raise ConfigError(f"--sensor {item!r}: expected KEY=VALUE with KEY a SensorConfig "
+                              f"field ({', '.join(sorted(fields))})")
+        try:
+            value = ast.literal_eval(text.strip())
+        except (ValueError, SyntaxError):
+            value = text.strip()  # a bare word: a string setting such as accel_frame=level
+        overrides[key] = value
+    return overrides
+
+
+def variant_outputs(specs: list[str] | None, out_dir: Path) -> list[tuple[str | None, Path]]:
+    """(variant, directory) pairs for the --variant arguments: one spec writes into ``out_dir``,
+    several (or 'each') into ``out_dir/NAME``."""
+    from slipd.sim.variants import VARIANTS, resolve
+
+    if not specs:
+        return [(None, out_dir)]
+    expanded: list[str] = []
+    for spec in specs:
+        expanded.extend(VARIANTS if spec.strip() == "each" else [spec])
+    resolved = [resolve(spec)[0] for spec in expanded]
+    if len(resolved) == 1:
+        return [(resolved[0], out_dir)]
+    return [(name, out_dir / name.replace(",", "+")) for name in resolved]
+
+
+def _print_variants(verbose: bool) -> None:
+    from slipd.sim.variants import VARIANTS
+
+    width = max(len(n) for n in VARIANTS)
+    for name, variant in VARIANTS.items():
+        print(f"{name:{width}s}  {variant.description}")
+        if verbose:
+            print(f"{'':{width}s}  settings: {variant.summary()}")
+            for source in variant.sources:
+                print(f"{'':{width}s}  - {source}")
 
 
 def run(args: argparse.Namespace) -> int:
     from slipd.sim.scenarios import SCENARIOS
 
-    if args.list:
-        width = max(len(n) for n in SCENARIOS)
-        for name, scen in SCENARIOS.items():
-            print(f"{name:{width}s}  {scen.duration:6.0f} s  {scen.paper}: {scen.description}")
+    if args.list or args.list_variants:
+        if args.list:
+            width = max(len(n) for n in SCENARIOS)
+            for name, scen in SCENARIOS.items():
+                print(f"{name:{width}s}  {scen.duration:6.0f} s  {scen.paper}: "
+                      f"{scen.description}")
+            print("\nsensor variants (--variant NAME; --list-variants for settings and sources):")
+        _print_variants(verbose=args.list_variants)
         return 0
     if args.out is None:
         raise ConfigError("--out DIR is required")
+    sensor = parse_sensor_overrides(args.sensor)
+    if args.gnss_delay is not None:
+        if args.gnss_delay < 0:
+            raise ConfigError("--gnss-delay must be >= 0")
+        sensor["gnss_delay"] = args.gnss_delay
+    outputs = variant_outputs(args.variant, args.out)
     _require_sim()
     if args.suite:
         if args.scenario:
             raise ConfigError("give either a SCENARIO or --suite, not both")
-        return run_suite(args.out, args.vehicle, args.seed, args.profile, max(1, args.jobs))
+        return run_suite(args.out, args.vehicle, args.seed, args.profile, max(1, args.jobs),
+                         outputs=outputs, sensor=sensor)
     if not args.scenario:
         raise ConfigError("name a SCENARIO (see slipd sim --list) or use --suite")
     if args.scenario not in SCENARIOS:
         raise ConfigError(f"unknown scenario {args.scenario!r}; see slipd sim --list")
-    sensor = {} if args.gnss_delay is None else {"gnss_delay": args.gnss_delay}
-    if args.gnss_delay is not None and args.gnss_delay < 0:
-        raise ConfigError("--gnss-delay must be >= 0")
-    info = simulate_to_files(args.scenario, args.out, args.vehicle, args.seed, args.duration,
-                             args.profile, workers=max(1, args.jobs), sensor=sensor)
-    print(f"{args.out / (args.scenario + '.log')}: {info['frames']} frames, "
-          f"{info['duration']:.1f} s simulated in {info['wall']:.1f} s")
+    infos = simulate_variants_to_files(args.scenario, outputs, args.vehicle, args.seed,
+                                       args.duration, args.profile, workers=max(1, args.jobs),
+                                       sensor=sensor)
+    for (_, out_dir), info in zip(outputs, infos, strict=True):
+        print(f"{out_dir / (args.scenario + '.log')}: {info['frames']} frames, "
+              f"{info['duration']:.1f} s simulated in {info['wall']:.1f} s")
     return 0

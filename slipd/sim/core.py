@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from slipd.channels import Veh
+from slipd.channels import In, Veh
 from slipd.errors import ConfigError
 from slipd.sim.plant import (
     N_MB,
@@ -222,32 +222,29 @@ def _head(out: PlantOutput, n: int) -> PlantOutput:
     return PlantOutput(*(getattr(out, f.name)[:n] for f in dataclasses.fields(PlantOutput)))
 
 
-def simulate(
-    scenario: str,
-    vehicle: int = 2,
-    seed: int = 0,
-    duration: float | None = None,
-    profile=None,
-    progress: Callable[[float], None] | None = None,
-    workers: int = 1,
-    sensor: dict | None = None,
-) -> SimResult:
-    """Run ``scenario`` on vehicle parameter set ``vehicle`` with sensor seed ``seed``.
+#: Channels whose messages take SensorConfig.imu_delay, wheel_delay and steer_delay.
+_DELAY_GROUPS = (
+    ("imu_delay", frozenset((In.AX, In.AY, In.AZ, In.YAW_RATE, In.ROLL_RATE, In.PITCH_RATE))),
+    ("wheel_delay", frozenset((In.WHEEL_SPEED_FL, In.WHEEL_SPEED_FR, In.WHEEL_SPEED_RL,
+                               In.WHEEL_SPEED_RR, In.SPEED_REF))),
+    ("steer_delay", frozenset((In.STEER, In.STEER_RATE))),
+)
 
-    ``duration`` (s) cuts the scenario (or stretches a one-leg manoeuvre). ``profile`` (a
-    Profile or a name) supplies the input messages, the IMU position and the steering ratio;
-    default: the shipped default profile. ``progress(t_sim)`` is called after each segment.
-    ``workers`` > 1 integrates the legs of a multi-leg drive (endurance) in parallel processes.
-    ``sensor`` overrides fields of :class:`~slipd.sim.sensors.SensorConfig` (e.g.
-    ``{"gnss_delay": 0.1}``) on top of the scenario's own.
-    """
-    if scenario not in SCENARIOS:
-        raise ConfigError(f"unknown scenario {scenario!r}; available: {', '.join(SCENARIOS)}")
-    if duration is not None and duration <= 0:
-        raise ConfigError(f"duration must be positive, got {duration}")
-    prof = _profile_or_none(profile)
-    out, p, plan = run_plan(scenario, vehicle, duration, progress, workers)
-    cfg_kw = {**plan.sensor, **(sensor or {})}
+
+def message_delays(specs, cfg: SensorConfig) -> tuple[float, ...] | None:
+    """Per message, the extra age of its values (the largest of its channels' groups); None when
+    every delay is 0 (the baseline's sampling, untouched)."""
+    if not any(getattr(cfg, name) for name, _ in _DELAY_GROUPS):
+        return None
+    return tuple(
+        max([getattr(cfg, name) for name, group in _DELAY_GROUPS
+             if group.intersection(spec.channels)], default=0.0)
+        for spec in specs
+    )
+
+
+def _sensor_config(plan: Plan, prof, overrides: dict) -> SensorConfig:
+    cfg_kw = {**plan.sensor, **overrides}
     unknown = set(cfg_kw) - {f.name for f in dataclasses.fields(SensorConfig)}
     if unknown:
         raise ConfigError(f"unknown sensor setting(s) {sorted(unknown)}")
@@ -259,14 +256,91 @@ def simulate(
     else:
         cfg_kw.setdefault("imu_position", DEFAULT_IMU_POSITION)
         cfg_kw.setdefault("steer_ratio", DEFAULT_STEER_RATIO)
-    cfg = SensorConfig(**cfg_kw)
+    return SensorConfig(**cfg_kw)
+
+
+def sense(
+    scenario: str,
+    plant: tuple[PlantOutput, object, Plan],
+    vehicle: int = 2,
+    seed: int = 0,
+    profile=None,
+    sensor: dict | None = None,
+    variant: str | None = None,
+) -> SimResult:
+    """The sensors' view of an integrated scenario (``plant`` as :func:`run_plan` returns it):
+    truth and messages for sensor seed ``seed``, sensor variant ``variant`` (a name of
+    :data:`slipd.sim.variants.VARIANTS` or names joined by commas) and the explicit ``sensor``
+    overrides on top. ``profile`` must be a loaded Profile or None (slipd.dbc's layout)."""
+    from slipd.sim.variants import resolve
+
+    out, p, plan = plant
+    variant_name, variant_overrides = resolve(variant)
+    overrides = {**variant_overrides, **(sensor or {})}
+    cfg = _sensor_config(plan, profile, overrides)
     rng = np.random.default_rng(seed)
     channels = sensor_channels(out, p, cfg, rng, heading0=plan.heading0)
+    specs = message_specs(profile)
     sensors = sample_messages(
-        out.t, channels, message_specs(prof), rng,
+        out.t, channels, specs, rng,
         cfg.latency_base, cfg.latency_spacing, cfg.latency_jitter,
+        delays=message_delays(specs, cfg),
     )
     return SimResult(
         scenario=scenario, vehicle=vehicle, seed=seed, truth=truth(out, p), sensors=sensors,
-        meta={"sensor_config": cfg, "extra_mass": plan.extra_mass},
+        meta={"sensor_config": cfg, "extra_mass": plan.extra_mass, "variant": variant_name,
+              "sensor_overrides": overrides},
     )
+
+
+def simulate(
+    scenario: str,
+    vehicle: int = 2,
+    seed: int = 0,
+    duration: float | None = None,
+    profile=None,
+    progress: Callable[[float], None] | None = None,
+    workers: int = 1,
+    sensor: dict | None = None,
+    variant: str | None = None,
+) -> SimResult:
+    """Run ``scenario`` on vehicle parameter set ``vehicle`` with sensor seed ``seed``.
+
+    ``duration`` (s) cuts the scenario (or stretches a one-leg manoeuvre). ``profile`` (a
+    Profile or a name) supplies the input messages, the IMU position and the steering ratio;
+    default: the shipped default profile. ``progress(t_sim)`` is called after each segment.
+    ``workers`` > 1 integrates the legs of a multi-leg drive (endurance) in parallel processes.
+    ``variant`` names a sensor variant (slipd.sim.variants.VARIANTS; several joined by commas
+    apply together); ``sensor`` overrides fields of :class:`~slipd.sim.sensors.SensorConfig`
+    (e.g. ``{"gnss_delay": 0.1}``) on top of the scenario's own and the variant's.
+    """
+    return simulate_variants(scenario, [variant], vehicle, seed, duration, profile, progress,
+                             workers, sensor)[0]
+
+
+def simulate_variants(
+    scenario: str,
+    variants,
+    vehicle: int = 2,
+    seed: int = 0,
+    duration: float | None = None,
+    profile=None,
+    progress: Callable[[float], None] | None = None,
+    workers: int = 1,
+    sensor: dict | None = None,
+) -> list[SimResult]:
+    """:func:`simulate` for each entry of ``variants`` (a variant spec or None for the baseline)
+    on one integration of the plant: the results share the truth and differ only in the
+    sensors."""
+    from slipd.sim.variants import resolve
+
+    if scenario not in SCENARIOS:
+        raise ConfigError(f"unknown scenario {scenario!r}; available: {', '.join(SCENARIOS)}")
+    if duration is not None and duration <= 0:
+        raise ConfigError(f"duration must be positive, got {duration}")
+    prof = _profile_or_none(profile)
+    plan = SCENARIOS[scenario].build(vehicle)
+    for spec in variants:  # refuse a bad name or setting before the integration
+        _sensor_config(plan, prof, {**resolve(spec)[1], **(sensor or {})})
+    plant = run_plan(scenario, vehicle, duration, progress, workers)
+    return [sense(scenario, plant, vehicle, seed, prof, sensor, spec) for spec in variants]

@@ -28,6 +28,7 @@ def write_truth_csv(path: str | Path, result: SimResult, epoch: float = START_EP
     header = [
         f"# slipd sim truth: scenario={result.scenario} vehicle={result.vehicle} "
         f"seed={result.seed}",
+        *_sensor_lines(result),
         f"# log_epoch = {epoch:.6f}  (log time = log_epoch + t)",
         "# SI units, ISO 8855 axes (x forward, y left, z up), beta = atan2(vy, vx) at the CoG,",
         "# roll/pitch: body relative to the road (ISO signs), bank: road roll (+ right edge",
@@ -39,6 +40,43 @@ def write_truth_csv(path: str | Path, result: SimResult, epoch: float = START_EP
     with open(path, "w", encoding="ascii") as fh:
         fh.write("\n".join(header) + "\n")
         np.savetxt(fh, data, fmt="%.9g", delimiter=",")
+
+
+def _sensor_lines(result: SimResult) -> list[str]:
+    """Header lines naming the sensor variant and every sensor override (none for the baseline,
+    whose header stays as it always was)."""
+    from slipd.sim.variants import VARIANTS, format_value
+
+    lines = []
+    name = result.meta.get("variant")
+    if name:
+        described = "; ".join(VARIANTS[n].description for n in name.split(",") if n in VARIANTS)
+        lines.append(f"# sensor variant: {name}  ({described})")
+    overrides = result.meta.get("sensor_overrides") or {}
+    if overrides:
+        lines.append("# sensor overrides: " + " ".join(
+            f"{key}={format_value(value)}" for key, value in sorted(overrides.items())))
+    return lines
+
+
+def read_truth_meta(path: str | Path) -> dict[str, str]:
+    """What made a truth CSV: scenario, vehicle, seed, and variant / sensor_overrides when the
+    header names them (written by :func:`write_truth_csv`)."""
+    meta: dict[str, str] = {}
+    with open(path, encoding="ascii") as fh:
+        for line in fh:
+            if not line.startswith("#"):
+                break
+            text = line[1:].strip()
+            if text.startswith("slipd sim truth:"):
+                for item in text.split(":", 1)[1].split():
+                    key, _, value = item.partition("=")
+                    meta[key] = value
+            elif text.startswith("sensor variant:"):
+                meta["variant"] = text.split(":", 1)[1].split("(", 1)[0].strip()
+            elif text.startswith("sensor overrides:"):
+                meta["sensor_overrides"] = text.split(":", 1)[1].strip()
+    return meta
 
 
 def read_truth_csv(path: str | Path) -> tuple[dict[str, np.ndarray], float]:
