@@ -49,9 +49,16 @@ def tone_wheel_speed(
 ) -> np.ndarray:
     """The angular speed (rad/s, unsigned) an ABS unit reports each grid step for a wheel turning
     at ``omega`` (rad/s) on the grid ``t``, from a tone wheel of ``teeth`` teeth."""
+    n_out = len(t)
+    if n_out < 2:
+        return np.zeros(n_out)
+    # the wheel turned before the first sample: a pre-roll at the first speed, long enough for
+    # two edges or the timeout, so the unit reports from the first sample on (dropped below)
+    dt0 = float(t[1] - t[0])
+    pre = int(math.ceil((timeout + 2.0 * dt0) / dt0))
+    t = np.concatenate((t[0] - dt0 * np.arange(pre, 0, -1), t))
+    omega = np.concatenate((np.full(pre, omega[0]), omega))
     n = len(t)
-    if n < 2:
-        return np.zeros(n)
     pitch = 2.0 * math.pi / teeth
     w = np.abs(np.asarray(omega, dtype=np.float64))
     theta = np.concatenate(([0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))))
@@ -59,8 +66,8 @@ def tone_wheel_speed(
     # theta = (e - phase) pitch, the first one e = 1)
     count = np.diff(edges, prepend=edges[0])
     if method == "count":
-        gate = np.diff(t, prepend=t[0] - (t[1] - t[0]))
-        return count * pitch / gate
+        gate = np.diff(t, prepend=t[0] - dt0)
+        return (count * pitch / gate)[pre:]
     if method != "edge_timing":
         raise ValueError(f"unknown wheel-speed method {method!r}; expected one of {METHODS}")
     has_edge = edges >= 1
@@ -75,4 +82,4 @@ def tone_wheel_speed(
     since = np.where(has_edge, t - np.where(has_edge, t_last, 0.0), 0.0)
     bound = np.where(since > 0, pitch / np.where(since > 0, since, 1.0), np.inf)
     speed = np.where(fresh, measured, np.where(has_edge, np.minimum(held, bound), 0.0))
-    return np.where(speed < pitch / timeout, 0.0, speed)
+    return np.where(speed < pitch / timeout, 0.0, speed)[pre:]
