@@ -13,23 +13,15 @@ import pytest
 pytest.importorskip("vehiclemodels")
 pytest.importorskip("scipy")
 
+from simkit import QUIET  # noqa: E402
+from simkit import synthetic as _synthetic
+
 from slipd.channels import In  # noqa: E402
 from slipd.errors import ConfigError  # noqa: E402
 from slipd.sim import simulate  # noqa: E402
 from slipd.sim.core import _standstill, simulate_variants  # noqa: E402
 from slipd.sim.driver import steer_step  # noqa: E402
-from slipd.sim.plant import (  # noqa: E402
-    N_MB,
-    OMEGA_FL,
-    OMEGA_RR,
-    VX,
-    YAW_RATE,
-    Driver,
-    Plant,
-    PlantOutput,
-    Road,
-    vehicle_parameters,
-)
+from slipd.sim.plant import Driver, Plant, PlantOutput, Road, vehicle_parameters  # noqa: E402
 from slipd.sim.sensors import SensorConfig, sensor_channels, truth  # noqa: E402
 from slipd.sim.tone_wheel import tone_wheel_speed  # noqa: E402
 from slipd.sim.variants import VARIANTS, resolve  # noqa: E402
@@ -38,14 +30,6 @@ from slipd.sim.vibration import ENGINE_ORDERS, IDLE_RPM, REF_SPEED, engine_rpm  
 G = 9.81
 DEG = math.pi / 180.0
 P = vehicle_parameters(2)
-
-QUIET = dict(  # no noise, offsets or filters: the geometry alone
-    accel_noise=0.0, gyro_noise=0.0, accel_bias=0.0, gyro_bias=0.0, accel_drift=0.0,
-    gyro_drift=0.0, imu_bandwidth_hz=0.0, imu_misalignment=0.0, wheel_radius_error=0.0,
-    wheel_noise_rel=0.0, wheel_noise_abs=0.0, swa_offset=0.0, swa_noise=0.0,
-    swa_rate_noise=0.0, gnss_noise_h=0.0, gnss_noise_v=0.0, mag_disturbance_rate=0.0,
-    mag_noise=0.0, mag_hard_iron=0.0, mag_soft_iron=0.0,
-)
 
 #: The messages each variant may change; every other message must stay bit-identical.
 TOUCHES = {
@@ -65,34 +49,6 @@ BASELINE_SHA256 = {
     (1, "log"): "db6fc6daae53255a389d2fcd2983df8e267203fcf21f90f57684005e7686ffa5",
     (1, "truth.csv"): "0c87f51d3225a84b642a106f4544c5a27ea13de42b97207e4376216f0046b673",
 }
-
-
-def _rx(a):
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-
-
-def _ry(a):
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-
-
-def _rz(a):
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-def _synthetic(n: int = 500, vx: float = 20.0, yaw_rate: float = 0.0, bank: float = 0.0,
-               grade: float = 0.0) -> PlantOutput:
-    """Prescribed motion without integration: straight or a steady circle (ay = r vx)."""
-    t = np.arange(n) * 0.01
-    x = np.zeros((n, N_MB))
-    dx = np.zeros((n, N_MB))
-    x[:, VX] = vx
-    x[:, YAW_RATE] = yaw_rate
-    x[:, OMEGA_FL : OMEGA_RR + 1] = vx / P.R_w
-    return PlantOutput(t=t, x=x, dx=dx, s=vx * t, accel_demand=np.zeros(n),
-                       mu=np.full(n, 1.0), bank=np.full(n, bank), grade=np.full(n, grade))
 
 
 def _channels(out: PlantOutput, seed: int = 0, **settings) -> dict:
@@ -200,7 +156,10 @@ def test_misalignment_rotates_the_static_gravity_vector():
     roll, pitch, yaw = VARIANTS["misalignment"].overrides["imu_mounting"]
     assert all(1.0 * DEG <= a <= 2.0 * DEG for a in (roll, pitch, yaw))
     ch = _channels(parked, imu_mounting=(roll, pitch, yaw))
-    expected = (_rz(yaw) @ _ry(pitch) @ _rx(roll)).T @ np.array([0.0, 0.0, G])
+    from scipy.spatial.transform import Rotation
+
+    mounting = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()  # Rz Ry Rx
+    expected = mounting.T @ np.array([0.0, 0.0, G])
     measured = np.array([ch[In.AX].mean(), ch[In.AY].mean(), ch[In.AZ].mean()])
     np.testing.assert_allclose(measured, expected, atol=1e-9)
     only_roll = _channels(parked, imu_mounting=(roll, 0.0, 0.0))

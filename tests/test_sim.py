@@ -10,6 +10,9 @@ import pytest
 pytest.importorskip("vehiclemodels")
 pytest.importorskip("scipy")
 
+from simkit import QUIET  # noqa: E402
+from simkit import synthetic as _synthetic
+
 from slipd.channels import U_LEN, U_TIME, VALID, In, Veh  # noqa: E402
 from slipd.sim import SCENARIOS, simulate  # noqa: E402
 from slipd.sim.core import _standstill  # noqa: E402
@@ -17,7 +20,6 @@ from slipd.sim.driver import steer_step  # noqa: E402
 from slipd.sim.plant import (  # noqa: E402
     N_MB,
     OMEGA_FL,
-    OMEGA_RR,
     VX,
     VY,
     YAW_RATE,
@@ -33,33 +35,9 @@ from slipd.sim.vehicle_data import derived, single_track_steady_state  # noqa: E
 G = 9.81
 DEG = math.pi / 180.0
 
-QUIET = dict(  # a sensor set without noise, offsets or disturbances: checks the geometry
-    accel_noise=0.0, gyro_noise=0.0, accel_bias=0.0, gyro_bias=0.0, accel_drift=0.0,
-    gyro_drift=0.0, imu_bandwidth_hz=0.0, imu_misalignment=0.0, wheel_radius_error=0.0,
-    wheel_noise_rel=0.0, wheel_noise_abs=0.0, swa_offset=0.0, swa_noise=0.0,
-    swa_rate_noise=0.0, gnss_noise_h=0.0, gnss_noise_v=0.0, mag_disturbance_rate=0.0,
-    mag_noise=0.0, mag_hard_iron=0.0, mag_soft_iron=0.0,
-)
-
-
 def _circle(speed: float, steer: float, duration: float = 5.0) -> PlantOutput:
     driver = Driver(steer=steer_step(0.5, steer, 0.3), speed_target=lambda t, s: speed)
     return Plant(vehicle_parameters(2), Road(), driver).run(duration, speed)
-
-
-def _synthetic(n: int = 500, vx: float = 20.0, yaw_rate: float = 0.0, yaw_acc: float = 0.0,
-               bank: float = 0.0, grade: float = 0.0) -> PlantOutput:
-    """A plant output with prescribed motion (no integration): straight or steady circle."""
-    p = vehicle_parameters(2)
-    t = np.arange(n) * 0.01
-    x = np.zeros((n, N_MB))
-    dx = np.zeros((n, N_MB))
-    x[:, VX] = vx
-    x[:, YAW_RATE] = yaw_rate + yaw_acc * t
-    dx[:, YAW_RATE] = yaw_acc
-    x[:, OMEGA_FL : OMEGA_RR + 1] = vx / p.R_w
-    return PlantOutput(t=t, x=x, dx=dx, s=vx * t, accel_demand=np.zeros(n),
-                       mu=np.full(n, 1.0), bank=np.full(n, bank), grade=np.full(n, grade))
 
 
 # --- plant physics and sign conventions ---------------------------------------------------
