@@ -7,8 +7,8 @@ of VALID ticks more than 5 deg off, the 2-sigma coverage of sigma_beta, the VALI
 * ``suite s0``, ``suite s1``: ``slipd sim --suite`` with sensor seeds 0 and 1, nominal profile;
 * ``mismatch``: every case of slipd.eval.mismatch on the seed-0 suite, pooled over the cases
   (the per-case tables go to the JSON);
-* ``variant NAME``: each sensor variant of the simulator (``slipd sim --suite --variant NAME``,
-  seed 0), when the checkout has them;
+* ``variant NAME``: each sensor variant of the simulator (slipd.sim.variants; one
+  ``slipd sim --suite --variant each`` run on seed 0 integrates the plant once per scenario);
 * ``real``: the Ferrari 250 LM run of ../shared/realdata, imported as the README shows.
 
 The baseline, measured in the same run, is ``zero`` (beta = 0): each block's last column is a
@@ -49,8 +49,8 @@ BLOCKS = ("suite", "mismatch", "variants", "real")
 
 def simulate_suite(folder: Path, seed: int, variant: str | None = None) -> Path:
     """``slipd sim --suite`` into ``folder`` unless it is there already (the CLI, as a user
-    runs it, so a variant is made exactly as documented)."""
-    if folder.is_dir() and any(folder.glob("*.truth.csv")) and (folder / ".complete").exists():
+    runs it, so a variant is made exactly as documented; ``each``: FOLDER/NAME/ per variant)."""
+    if (folder / ".complete").exists():
         return folder
     command = [sys.executable, "-m", "slipd", "sim", "--suite", "--seed", str(seed),
                "--out", str(folder)]
@@ -81,11 +81,8 @@ def import_real(folder: Path) -> LogCase | None:
 
 
 def variant_names() -> list[str]:
-    try:
-        from slipd.sim.variants import VARIANTS
-    except ImportError:
-        print("sensor variants skipped: this checkout has no slipd.sim.variants", file=sys.stderr)
-        return []
+    from slipd.sim.variants import VARIANTS
+
     return list(VARIANTS)
 
 
@@ -128,6 +125,26 @@ def print_block(title: str, rows: dict[str, Scores]) -> None:
     print()
 
 
+def print_summary(blocks: dict[str, dict], methods: list[str]) -> None:
+    """One matrix per figure: a row per method, a column per block."""
+    names = list(blocks)
+    for title, field, scale, fmt in (
+            ("beta RMS [deg]", "beta_rms_deg", 1.0, "9.2f"),
+            ("beta p99 [deg]", "beta_p99_deg", 1.0, "9.2f"),
+            ("VALID ticks > 5 deg off [%]", "valid_err_over_5deg", 100.0, "9.2f"),
+            ("2-sigma coverage of VALID ticks [%]", "sigma2_coverage", 100.0, "9.1f")):
+        print(f"== summary: {title}")
+        labels = [n.replace("variant ", "").replace("suite ", "")[:9] for n in names]
+        print(f"  {'estimator':22s} " + " ".join(f"{label:>9s}" for label in labels))
+        for m in methods:
+            cells = []
+            for n in names:
+                v = blocks[n]["estimators"].get(m, {}).get(field)
+                cells.append(f"{'-':>9s}" if v is None else format(v * scale, fmt))
+            print(f"  {m:22s} " + " ".join(cells))
+        print()
+
+
 def main(argv: list[str] | None = None) -> int:
     from slipd.commands.eval import _methods
     from slipd.eval.mismatch import CASES
@@ -139,7 +156,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=2, help="evaluation processes (default 2)")
     parser.add_argument("--cache", type=Path, default=ROOT / "runs" / "accuracy")
     parser.add_argument("--json", type=Path, help="write every table (and per case) as JSON")
+    parser.add_argument("--summary", type=Path, nargs="+", metavar="JSON",
+                        help="only print the summary matrices of earlier --json outputs")
     args = parser.parse_args(argv)
+    if args.summary:
+        docs = [json.loads(p.read_text()) for p in args.summary]
+        merged = {name: block for doc in docs for name, block in doc["blocks"].items()}
+        print_summary(merged, list(dict.fromkeys(m for d in docs for m in d["estimators"])))
+        return 0
     blocks = [b.strip() for b in args.blocks.split(",") if b.strip()]
     unknown = set(blocks) - set(BLOCKS)
     if unknown:
@@ -160,10 +184,10 @@ def main(argv: list[str] | None = None) -> int:
         order.append("mismatch")
         jobs += [("mismatch", suites[0], methods, "default", name) for name in CASES]
     if "variants" in blocks:
+        folder = simulate_suite(args.cache / "variants_s0", 0, "each")
         for name in variant_names():
-            folder = simulate_suite(args.cache / f"variant_{name}_s0", 0, name)
             order.append(f"variant {name}")
-            jobs.append((f"variant {name}", suite_logs(folder), methods, "default", None))
+            jobs.append((f"variant {name}", suite_logs(folder / name), methods, "default", None))
     if "real" in blocks:
         real = import_real(args.cache / "real")
         if real is not None:
@@ -196,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         }
     if args.json:
         args.json.write_text(json.dumps(doc, indent=2) + "\n")
+    print_summary(doc["blocks"], methods)
     print(f"total {time.perf_counter() - started:.0f} s; V = VALID ticks; /zero = RMS over "
           "zero's (the baseline of the same run)")
     return 0
