@@ -53,7 +53,7 @@ def main() -> None:
         U = np.zeros((1, U_LEN))
         started = time.perf_counter()
         kernels.latch_ticks(p.plan_i, p.plan_f, p.lookup, p.timeouts, codec.channel_timeouts,
-                            t, ids, flags, dlc, data, np.array([t[-1]]),
+                            t, np.zeros(n, np.int64), ids, flags, dlc, data, np.array([t[-1]]),
                             np.array([n], np.int64), state.latch, state.msg_state,
                             state.errors, U)
         elapsed = time.perf_counter() - started

@@ -141,7 +141,7 @@ def test_e2e_failures_are_counted_and_not_used():
     counts = codec.error_counts()
     assert counts["IMU_ACCEL"] == {"accepted": 2, "wrong_length": 1, "e2e": 1,
                                    "counter_repeat": 1, "counter_jump": 1, "out_of_range": 0,
-                                   "unknown_id": 0}
+                                   "unknown_id": 0, "not_available": 0}
     assert counts["unknown"]["unknown_id"] == 1
 
 

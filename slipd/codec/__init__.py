@@ -54,16 +54,25 @@ class Codec:
     def __init__(self, profile: Profile):
         self.profile = profile
         self.inputs: Plan = compile_input_plan(profile)
-        self.outputs: Plan = compile_output_plan()
+        self.outputs: Plan = compile_output_plan(outputs=profile.outputs)
         self.channel_timeouts = channel_timeouts(profile)
         self.state = DecodeState.new(self.inputs.n_messages)
         self._tx_counters = dict.fromkeys(self.outputs.message_names, 0)
         self._input_counters = dict.fromkeys(self.inputs.message_names, 0)
 
     @staticmethod
-    def output_plan() -> Plan:
-        """The encode plan of slipd's output frames (independent of the car)."""
-        return compile_output_plan()
+    def output_plan(profile: Profile | None = None) -> Plan:
+        """The encode plan of slipd's output frames: slipd.dbc's layout with the profile's
+        output IDs, bus and frame format (slipd.dbc's IDs without a profile)."""
+        return compile_output_plan(outputs=profile.outputs if profile is not None else None)
+
+    def bus_index(self, name: str) -> int:
+        """Index of bus ``name`` in the profile's bus order (what decode's ``bus`` takes)."""
+        try:
+            return self.inputs.buses.index(name)
+        except ValueError:
+            raise CodecError(f"profile {self.profile.name} has no bus {name!r}; its buses: "
+                             f"{list(self.inputs.buses)}") from None
 
     @classmethod
     def from_profile(cls, profile: Profile | str = "default") -> Codec:
@@ -71,14 +80,14 @@ class Codec:
 
     # ---- decode -------------------------------------------------------------------------
     def decode(self, frame_id: int, data: bytes | np.ndarray, t: float,
-               extended: bool = False, state: DecodeState | None = None) -> int:
-        """Decode one frame into the latch (or into ``state``, a scratch one); returns the
-        message row, -1 unknown, -2 rejected."""
+               extended: bool = False, state: DecodeState | None = None, bus: int = 0) -> int:
+        """Decode one frame received on bus index ``bus`` into the latch (or into ``state``,
+        a scratch one); returns the message row, -1 unknown, -2 rejected."""
         payload = np.frombuffer(bytes(data), dtype=np.uint8) if not isinstance(
             data, np.ndarray) else data
         p = self.inputs
         s = self.state if state is None else state
-        return kernels.decode_frame(p.plan_i, p.plan_f, p.lookup, frame_id, extended,
+        return kernels.decode_frame(p.plan_i, p.plan_f, p.lookup, bus, frame_id, extended,
                                     len(payload), payload, t, p.timeouts, s.latch,
                                     s.msg_state, s.errors, s.scratch)
 

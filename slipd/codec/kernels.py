@@ -7,16 +7,24 @@ allocation in numba's call wrapper):
     one row per message, then one per signal (``M_*`` and ``S_*`` columns);
 ``plan_f`` float64 [rows, F_COLS]
     scale, offset, range and SI factor per signal row;
-``lookup`` int64 [2048 + 2 * n_extended]
-    standard ID -> message row (or -1), then the sorted extended IDs and their rows.
+``lookup`` int64 [2 + 2048 * n_bus + 2 * n_extended]
+    n_bus and n_extended, then (bus, standard ID) -> message row (or -1) at
+    ``2 + bus * 2048 + id``, then the sorted keys ``bus << 29 | id`` of the extended IDs and
+    their rows.
+
+Signals are read and written bit by bit from the payload bytes (classic frames and CAN FD
+frames up to 64 bytes alike): a little-endian (Intel) signal from its start bit upwards, a
+big-endian (Motorola) one from its most significant bit in the DBC's "sawtooth" numbering.
 
 Latch and bookkeeping arrays are owned by the caller (daemon or batch engine):
 
-``latch`` float64 [3, N_IN]: newest value, its timestamp, 1.0 once set;
+``latch`` float64 [3, N_IN]: newest value, its timestamp, 1.0 while set and available;
 ``msg_state`` float64 [n_msg, 2]: last alive counter (-1 none), time of the last accepted frame;
 ``errors`` int64 [n_msg + 1, N_ERR]: per-message counters, the last row for unknown IDs.
 
-A frame that fails a check updates nothing but its error counter.
+A frame that fails a check updates nothing but its error counter. A value its sender marks
+as not available (a qualifier bit, a value-table code such as "init" or "fault") makes only
+that channel invalid from the frame's time on; the frame's other channels are used.
 """
 
 from __future__ import annotations
@@ -26,31 +34,41 @@ import math
 import numba as nb
 import numpy as np
 
-from slipd.codec.e2e import CRC8_H2F, CRC8_SAE_J1850
+from slipd.codec.e2e import CRC8_H2F, CRC8_SAE_J1850, CRC16_XMODEM, HKG_CANFD_XOR
 
+MAX_PAYLOAD = 64  # bytes: CAN FD
+FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 # plan_i columns of a message row
 M_FRAME_ID = 0
 M_DLC = 1
 M_E2E = 2
-M_CRC_ROW = 3  # signal row of the CRC/checksum byte, -1 none
+M_CRC_ROW = 3  # signal row of the CRC/checksum, -1 none
 M_COUNTER_ROW = 4  # signal row of the alive counter, -1 none
 M_SIG_FIRST = 5
 M_SIG_COUNT = 6
 M_MAX_DELTA = 7
-M_DATA_ID_FIRST = 8  # 16 data IDs follow in plan_i[row, M_DATA_IDS:]
+M_BUS = 8  # bus index (profile bus order)
 M_EXTENDED = 9
-M_DATA_IDS = 10
+M_DATA_IDS = 10  # 16 data IDs (autosar_crc8), one per counter value
+M_FD = M_DATA_IDS + 16  # 1: a CAN FD frame
 # plan_i columns of a signal row
-S_SHIFT = 0  # right shift in the little-endian (Intel) or big-endian (Motorola) 64-bit word
+S_START = 0  # little endian: start (LSB) bit; big endian: the MSB's position counted from
+#              bit 7 of byte 0 downwards (byte * 8 + 7 - bit)
 S_LENGTH = 1
 S_BIG_ENDIAN = 2
 S_SIGNED = 3
 S_FLOAT = 4
-S_SLOT = 5  # channel (decode) or value slot (encode), -1 for CRC/counter rows
+S_SLOT = 5  # channel (decode) or value slot (encode), -1 for CRC/counter/sign/qualifier rows
 S_ACCUMULATE = 6  # 1: add to the slot (a channel summed from several signals)
 S_CHECK_RANGE = 7
-S_CRC_BYTE = 8  # for CRC rows: the byte index
-I_COLS = M_DATA_IDS + 16
+S_CRC_BYTE = 8  # for CRC rows: the byte index of the CRC's first byte
+S_SIGN_ROW = 9  # row of the sign bit of a sign-magnitude value (1 = negative), -1 none
+S_VALID_ROW = 10  # row of the qualifier signal, -1 none
+S_VALID_MASK = 11  # bit k set: qualifier raw value k means "valid"
+S_N_INVALID = 12  # count of raw values meaning "not available" (value table), then the values
+S_INVALID = 13
+MAX_INVALID = 12
+I_COLS = M_FD + 1
 
 # plan_f columns
 F_SCALE = 0
@@ -65,6 +83,10 @@ E2E_NONE = 0
 E2E_SLIPD_CRC8 = 1
 E2E_TOYOTA = 2
 E2E_AUTOSAR_CRC8 = 3
+E2E_HONDA = 4
+E2E_HKG_CANFD = 5
+E2E_SUBARU = 6
+E2E_TESLA = 7
 
 # error counter columns
 ERR_ACCEPTED = 0
@@ -74,31 +96,41 @@ ERR_COUNTER_REPEAT = 3
 ERR_COUNTER_JUMP = 4
 ERR_RANGE = 5
 ERR_UNKNOWN_ID = 6
-N_ERR = 7
+ERR_NOT_AVAILABLE = 7  # an accepted frame's value its sender marked not available
+N_ERR = 8
 ERROR_NAMES = ("accepted", "wrong_length", "e2e", "counter_repeat", "counter_jump",
-               "out_of_range", "unknown_id")
+               "out_of_range", "unknown_id", "not_available")
 
 LATCH_VALUE = 0
 LATCH_TIME = 1
 LATCH_SET = 2
+BUS_KEY_SHIFT = 29  # extended lookup key: bus << 29 | id
+LOOKUP_N_BUS = 0
+LOOKUP_N_EXT = 1
+LOOKUP_HEADER = 2
 
 
 @nb.njit(cache=True)
-def lookup_message(lookup, frame_id, extended):
-    """Message row of a frame ID, or -1 when the plan does not know it."""
+def lookup_message(lookup, bus, frame_id, extended):
+    """Message row of a frame ID on bus ``bus``, or -1 when the plan does not know it."""
+    n_bus = lookup[LOOKUP_N_BUS]
+    if bus < 0 or bus >= n_bus:
+        return -1
     if not extended:
         if 0 <= frame_id < 2048:
-            return lookup[frame_id]
+            return lookup[LOOKUP_HEADER + bus * 2048 + frame_id]
         return -1
-    n_ext = (lookup.shape[0] - 2048) // 2
+    n_ext = lookup[LOOKUP_N_EXT]
+    keys = LOOKUP_HEADER + n_bus * 2048
+    key = (np.int64(bus) << BUS_KEY_SHIFT) | np.int64(frame_id)
     lo = 0
     hi = n_ext - 1
     while lo <= hi:
         mid = (lo + hi) // 2
-        key = lookup[2048 + mid]
-        if key == frame_id:
-            return lookup[2048 + n_ext + mid]
-        if key < frame_id:
+        probe = lookup[keys + mid]
+        if probe == key:
+            return lookup[keys + n_ext + mid]
+        if probe < key:
             lo = mid + 1
         else:
             hi = mid - 1
@@ -106,24 +138,63 @@ def lookup_message(lookup, frame_id, extended):
 
 
 @nb.njit(cache=True)
-def _words(data, dlc):
-    little = np.uint64(0)
-    big = np.uint64(0)
-    for i in range(min(dlc, 8)):
-        byte = np.uint64(data[i])
-        little |= byte << np.uint64(8 * i)
-        big |= byte << np.uint64(56 - 8 * i)
-    return little, big
+def _raw(plan_i, row, data):
+    """The signal's raw bits (unsigned, right-aligned) from the payload bytes."""
+    length = plan_i[row, S_LENGTH]
+    position = plan_i[row, S_START]
+    value = np.uint64(0)
+    got = 0
+    if plan_i[row, S_BIG_ENDIAN]:
+        # position counts from bit 7 of byte 0 downwards: MSB first
+        while got < length:
+            index = position >> 3
+            available = 8 - (position & 7)
+            take = min(available, length - got)
+            chunk = (np.uint64(data[index]) >> np.uint64(available - take)) & np.uint64(
+                (1 << take) - 1)
+            value = (value << np.uint64(take)) | chunk
+            got += take
+            position += take
+    else:
+        while got < length:
+            index = position >> 3
+            offset = position & 7
+            take = min(8 - offset, length - got)
+            chunk = (np.uint64(data[index]) >> np.uint64(offset)) & np.uint64((1 << take) - 1)
+            value |= chunk << np.uint64(got)
+            got += take
+            position += take
+    return value
 
 
 @nb.njit(cache=True)
-def _raw(plan_i, row, little, big):
+def _put_raw(plan_i, row, raw, out):
+    """Write the low S_LENGTH bits of ``raw`` into the payload ``out`` at the signal's place."""
     length = plan_i[row, S_LENGTH]
-    word = big if plan_i[row, S_BIG_ENDIAN] else little
-    value = word >> np.uint64(plan_i[row, S_SHIFT])
-    if length < 64:
-        value &= (np.uint64(1) << np.uint64(length)) - np.uint64(1)
-    return value
+    position = plan_i[row, S_START]
+    done = 0
+    if plan_i[row, S_BIG_ENDIAN]:
+        while done < length:
+            index = position >> 3
+            available = 8 - (position & 7)
+            take = min(available, length - done)
+            shift = length - done - take  # bits of raw below this chunk
+            chunk = (raw >> np.uint64(shift)) & np.uint64((1 << take) - 1)
+            low = available - take
+            mask = ((1 << take) - 1) << low
+            out[index] = np.uint8((np.int64(out[index]) & ~mask) | (np.int64(chunk) << low))
+            done += take
+            position += take
+    else:
+        while done < length:
+            index = position >> 3
+            offset = position & 7
+            take = min(8 - offset, length - done)
+            chunk = (raw >> np.uint64(done)) & np.uint64((1 << take) - 1)
+            mask = ((1 << take) - 1) << offset
+            out[index] = np.uint8((np.int64(out[index]) & ~mask) | (np.int64(chunk) << offset))
+            done += take
+            position += take
 
 
 @nb.njit(cache=True)
@@ -148,9 +219,7 @@ def _ieee(bits, length):
 
 
 @nb.njit(cache=True)
-def signal_physical(plan_i, plan_f, row, little, big):
-    """Physical value (DBC units) of signal ``row`` in a frame's 64-bit words."""
-    raw = _raw(plan_i, row, little, big)
+def _physical_of_raw(plan_i, plan_f, row, raw):
     length = plan_i[row, S_LENGTH]
     if plan_i[row, S_FLOAT]:
         value = _ieee(raw, length)
@@ -164,15 +233,36 @@ def signal_physical(plan_i, plan_f, row, little, big):
 
 
 @nb.njit(cache=True)
+def signal_physical(plan_i, plan_f, row, data):
+    """Physical value (DBC units) of signal ``row`` in a payload, before sign and qualifier."""
+    return _physical_of_raw(plan_i, plan_f, row, _raw(plan_i, row, data))
+
+
+@nb.njit(cache=True)
 def decode_signal(plan_i, plan_f, row, data, dlc):
     """Physical value of one signal row in a payload (tests and diagnostics)."""
-    little, big = _words(data, dlc)
-    return signal_physical(plan_i, plan_f, row, little, big)
+    return signal_physical(plan_i, plan_f, row, data)
+
+
+@nb.njit(cache=True)
+def _available(plan_i, row, raw, data):
+    """False when the sender marks this value as not available: a value-table code of the
+    signal, or its qualifier signal outside the valid values."""
+    for k in range(plan_i[row, S_N_INVALID]):
+        if raw == np.uint64(plan_i[row, S_INVALID + k]):
+            return False
+    valid_row = plan_i[row, S_VALID_ROW]
+    if valid_row >= 0:
+        qualifier = np.int64(_raw(plan_i, valid_row, data))
+        if qualifier > 62 or not (plan_i[row, S_VALID_MASK] >> qualifier) & 1:
+            return False
+    return True
 
 
 @nb.njit(cache=True)
 def e2e_code(plan_i, msg, frame_id, data, dlc, counter):
-    """The CRC/checksum the message's E2E scheme expects for this payload."""
+    """The CRC/checksum the message's E2E scheme expects for this payload (the opendbc
+    functions of the same names, see slipd.codec.e2e)."""
     scheme = plan_i[msg, M_E2E]
     crc_row = plan_i[msg, M_CRC_ROW]
     if scheme == E2E_TOYOTA:
@@ -184,7 +274,44 @@ def e2e_code(plan_i, msg, frame_id, data, dlc, counter):
         for i in range(dlc - 1):
             total += data[i]
         return total & 0xFF
+    if scheme == E2E_HONDA:
+        total = np.int64(0)
+        address = np.int64(frame_id)
+        while address > 0:
+            total += address & 0xF
+            address >>= 4
+        for i in range(dlc):
+            x = np.int64(data[i])
+            if i == dlc - 1:
+                x >>= 4
+            total += (x & 0xF) + (x >> 4)
+        total = 8 - total
+        if plan_i[msg, M_EXTENDED]:
+            total += 3
+        return total & 0xF
+    if scheme == E2E_HKG_CANFD:
+        crc = np.int64(0)
+        for i in range(2, dlc):
+            crc = ((crc << 8) ^ CRC16_XMODEM[(crc >> 8) ^ data[i]]) & 0xFFFF
+        crc = ((crc << 8) ^ CRC16_XMODEM[(crc >> 8) ^ (frame_id & 0xFF)]) & 0xFFFF
+        crc = ((crc << 8) ^ CRC16_XMODEM[(crc >> 8) ^ ((frame_id >> 8) & 0xFF)]) & 0xFFFF
+        return crc ^ HKG_CANFD_XOR[dlc]
+    if scheme == E2E_SUBARU:
+        total = np.int64(0)
+        address = np.int64(frame_id)
+        while address > 0:
+            total += address & 0xFF
+            address >>= 8
+        for i in range(1, dlc):
+            total += data[i]
+        return total & 0xFF
     crc_byte = plan_i[crc_row, S_CRC_BYTE]
+    if scheme == E2E_TESLA:
+        total = np.int64((frame_id & 0xFF) + ((frame_id >> 8) & 0xFF))
+        for i in range(dlc):
+            if i != crc_byte:
+                total += data[i]
+        return total & 0xFF
     crc = np.int64(0xFF)
     if scheme == E2E_SLIPD_CRC8:
         for i in range(dlc):
@@ -201,16 +328,17 @@ def e2e_code(plan_i, msg, frame_id, data, dlc, counter):
 
 
 @nb.njit(cache=True)
-def decode_frame(plan_i, plan_f, lookup, frame_id, extended, dlc, data, t, timeouts,
+def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, timeouts,
                  latch, msg_state, errors, scratch):
-    """Check one frame and, if it passes, write its channels into ``latch``.
+    """Check one frame received on bus ``bus`` and, if it passes, write its channels into
+    ``latch``.
 
     ``timeouts`` float64 [n_msg]: a message silent for longer resynchronises its counter.
     ``scratch`` float64 [N_IN]: room to assemble channel values before committing them, so a
     frame with one out-of-range signal updates none of its channels.
     Returns the message row (>= 0) when accepted, -1 unknown ID, -2 rejected.
     """
-    msg = lookup_message(lookup, frame_id, extended)
+    msg = lookup_message(lookup, bus, frame_id, extended)
     n_msg = errors.shape[0] - 1
     if msg < 0:
         errors[n_msg, ERR_UNKNOWN_ID] += 1
@@ -218,15 +346,14 @@ def decode_frame(plan_i, plan_f, lookup, frame_id, extended, dlc, data, t, timeo
     if dlc != plan_i[msg, M_DLC]:
         errors[msg, ERR_LENGTH] += 1
         return -2
-    little, big = _words(data, dlc)
     counter = np.int64(-1)
     counter_row = plan_i[msg, M_COUNTER_ROW]
     if counter_row >= 0:
-        counter = np.int64(_raw(plan_i, counter_row, little, big))
+        counter = np.int64(_raw(plan_i, counter_row, data))
     if plan_i[msg, M_E2E] != E2E_NONE:
         crc_row = plan_i[msg, M_CRC_ROW]
         if e2e_code(plan_i, msg, frame_id, data, dlc, counter) != np.int64(
-            _raw(plan_i, crc_row, little, big)
+            _raw(plan_i, crc_row, data)
         ):
             errors[msg, ERR_E2E] += 1
             return -2
@@ -246,11 +373,16 @@ def decode_frame(plan_i, plan_f, lookup, frame_id, extended, dlc, data, t, timeo
                 errors[msg, ERR_COUNTER_JUMP] += 1
                 return -2
     first = plan_i[msg, M_SIG_FIRST]
+    unavailable = np.int64(0)  # bit per slot: a value marked not available in this frame
     for row in range(first, first + plan_i[msg, M_SIG_COUNT]):
         slot = plan_i[row, S_SLOT]
         if slot < 0:
             continue
-        physical = signal_physical(plan_i, plan_f, row, little, big)
+        raw = _raw(plan_i, row, data)
+        physical = _physical_of_raw(plan_i, plan_f, row, raw)
+        if not _available(plan_i, row, raw, data):
+            unavailable |= np.int64(1) << slot
+            continue
         if plan_i[row, S_CHECK_RANGE] and plan_f[row, F_MIN] < plan_f[row, F_MAX]:
             tolerance = 0.5 * abs(plan_f[row, F_SCALE])
             if not (plan_f[row, F_MIN] - tolerance <= physical <= plan_f[row, F_MAX] + tolerance):
@@ -259,16 +391,25 @@ def decode_frame(plan_i, plan_f, lookup, frame_id, extended, dlc, data, t, timeo
         if not math.isfinite(physical):
             errors[msg, ERR_RANGE] += 1
             return -2
+        sign_row = plan_i[row, S_SIGN_ROW]
+        if sign_row >= 0 and _raw(plan_i, sign_row, data) != np.uint64(0):
+            physical = -physical
         if plan_i[row, S_ACCUMULATE]:
             scratch[slot] += physical * plan_f[row, F_FACTOR]
         else:
             scratch[slot] = physical * plan_f[row, F_FACTOR]
     for row in range(first, first + plan_i[msg, M_SIG_COUNT]):
         slot = plan_i[row, S_SLOT]
-        if slot >= 0:
+        if slot < 0:
+            continue
+        latch[LATCH_TIME, slot] = t
+        if (unavailable >> slot) & 1:
+            latch[LATCH_SET, slot] = 0.0  # invalid from now on; the old value stays
+        else:
             latch[LATCH_VALUE, slot] = scratch[slot]
-            latch[LATCH_TIME, slot] = t
             latch[LATCH_SET, slot] = 1.0
+    if unavailable:
+        errors[msg, ERR_NOT_AVAILABLE] += 1
     if counter_row >= 0:
         msg_state[msg, 0] = counter
     msg_state[msg, 1] = t
@@ -292,15 +433,16 @@ def sample_latch(latch, channel_timeouts, t, u):
 
 
 @nb.njit(cache=True)
-def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, frame_time, frame_id,
-                frame_flags, frame_dlc, frame_data, tick_time, tick_until, latch, msg_state,
-                errors, U):
+def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, frame_time, frame_bus,
+                frame_id, frame_flags, frame_dlc, frame_data, tick_time, tick_until, latch,
+                msg_state, errors, U):
     """The batch engine's front half: decode frames in log order and sample at every tick.
 
     Frames ``[.., tick_until[k])`` are applied before tick ``k`` is sampled at ``tick_time[k]``
     (the daemon's order: what was received before the tick is latched, then the tick
     samples; from a log's times that is ``searchsorted(frame_time, tick_time, 'right')``, from
-    a flight recorder it is the file order). ``frame_flags`` bit 0 = extended ID, bit 1 =
+    a flight recorder it is the file order). ``frame_bus`` is each frame's bus index (-1: a
+    channel the profile does not read, skipped). ``frame_flags`` bit 0 = extended ID, bit 1 =
     remote, bit 2 = error frame (the last two are never decoded). Returns frames consumed.
     """
     scratch = np.zeros(latch.shape[1])
@@ -308,28 +450,13 @@ def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, frame_time, 
     for k in range(tick_time.shape[0]):
         while i < tick_until[k]:
             flags = frame_flags[i]
-            if not (flags & 6):
-                decode_frame(plan_i, plan_f, lookup, frame_id[i], (flags & 1) != 0,
-                             frame_dlc[i], frame_data[i], frame_time[i], timeouts, latch,
-                             msg_state, errors, scratch)
+            if not (flags & 6) and frame_bus[i] >= 0:
+                decode_frame(plan_i, plan_f, lookup, frame_bus[i], frame_id[i],
+                             (flags & 1) != 0, frame_dlc[i], frame_data[i], frame_time[i],
+                             timeouts, latch, msg_state, errors, scratch)
             i += 1
         sample_latch(latch, channel_timeouts, tick_time[k], U[k])
     return i
-
-
-@nb.njit(cache=True)
-def _put_raw(little, big, plan_i, row, raw):
-    length = plan_i[row, S_LENGTH]
-    mask = np.uint64(0xFFFFFFFFFFFFFFFF)
-    if length < 64:
-        mask = (np.uint64(1) << np.uint64(length)) - np.uint64(1)
-    shift = np.uint64(plan_i[row, S_SHIFT])
-    raw &= mask
-    if plan_i[row, S_BIG_ENDIAN]:
-        big = (big & ~(mask << shift)) | (raw << shift)
-    else:
-        little = (little & ~(mask << shift)) | (raw << shift)
-    return little, big
 
 
 @nb.njit(cache=True)
@@ -361,11 +488,13 @@ def encode_frame(plan_i, plan_f, msg, values, counter, out):
 
     Values are converted to physical units, clamped to the signal's DBC range and bit width
     (cantools' non-strict encode overflows instead) and rounded to the DBC resolution; signals
-    summed into one channel are filled in order, each taking what the previous left over.
-    The alive counter and the CRC/checksum are filled last.
+    summed into one channel are filled in order, each taking what the previous left over. A
+    sign-magnitude value writes its magnitude and its sign bit, a qualified one its qualifier's
+    first valid value. The alive counter and the CRC/checksum are filled last.
     """
-    little = np.uint64(0)
-    big = np.uint64(0)
+    dlc = plan_i[msg, M_DLC]
+    for i in range(dlc):
+        out[i] = 0
     first = plan_i[msg, M_SIG_FIRST]
     remainder = 0.0
     for row in range(first, first + plan_i[msg, M_SIG_COUNT]):
@@ -376,27 +505,30 @@ def encode_frame(plan_i, plan_f, msg, values, counter, out):
             physical = remainder
         else:
             physical = values[slot] / plan_f[row, F_FACTOR]
+        sign_row = plan_i[row, S_SIGN_ROW]
+        negative = False
+        if sign_row >= 0:
+            negative = physical < 0.0
+            physical = abs(physical)
+            _put_raw(plan_i, sign_row, np.uint64(1 if negative else 0), out)
+        valid_row = plan_i[row, S_VALID_ROW]
+        if valid_row >= 0:
+            mask = plan_i[row, S_VALID_MASK]
+            first_valid = 0
+            while first_valid < 62 and not (mask >> first_valid) & 1:
+                first_valid += 1
+            _put_raw(plan_i, valid_row, np.uint64(first_valid), out)
         raw = _raw_of_physical(plan_i, plan_f, row, physical)
-        little, big = _put_raw(little, big, plan_i, row, raw)
-        sent = signal_physical(plan_i, plan_f, row, little, big)
-        remainder = physical - sent
+        _put_raw(plan_i, row, raw, out)
+        sent = signal_physical(plan_i, plan_f, row, out)
+        remainder = (-physical if negative else physical) - (-sent if negative else sent)
     counter_row = plan_i[msg, M_COUNTER_ROW]
     if counter_row >= 0:
-        little, big = _put_raw(little, big, plan_i, counter_row, np.uint64(counter))
-    dlc = plan_i[msg, M_DLC]
-    for i in range(dlc):
-        byte = (little >> np.uint64(8 * i)) & np.uint64(0xFF)
-        byte |= (big >> np.uint64(56 - 8 * i)) & np.uint64(0xFF)
-        out[i] = np.uint8(byte)
+        _put_raw(plan_i, counter_row, np.uint64(counter), out)
     if plan_i[msg, M_E2E] != E2E_NONE:
         crc_row = plan_i[msg, M_CRC_ROW]
         code = e2e_code(plan_i, msg, plan_i[msg, M_FRAME_ID], out, dlc, counter)
-        little, big = _words(out, dlc)
-        little, big = _put_raw(little, big, plan_i, crc_row, np.uint64(code))
-        for i in range(dlc):
-            byte = (little >> np.uint64(8 * i)) & np.uint64(0xFF)
-            byte |= (big >> np.uint64(56 - 8 * i)) & np.uint64(0xFF)
-            out[i] = np.uint8(byte)
+        _put_raw(plan_i, crc_row, np.uint64(code), out)
 
 
 @nb.njit(cache=True)

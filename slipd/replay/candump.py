@@ -445,12 +445,15 @@ def write_candump(path: str | Path, t: np.ndarray, frame_id: np.ndarray, data: n
     """Write frames as ``candump -L`` lines; timestamps are rounded to microseconds.
 
     ``channel``/``channels`` give a per-frame interface name (default: ``interface``).
+    Without ``flags``, frames longer than 8 bytes are written as CAN FD frames.
     Returns the number of lines written.
     """
     n = len(t)
     data = np.ascontiguousarray(data, dtype=np.uint8).reshape(n, -1)
     dlc = np.full(n, data.shape[1], np.uint8) if dlc is None else np.asarray(dlc, np.uint8)
-    flags = np.zeros(n, np.uint8) if flags is None else np.asarray(flags, np.uint8)
+    # a payload longer than 8 bytes exists only as a CAN FD frame ("##F" in candump)
+    flags = (np.where(dlc > 8, FLAG_FD, 0).astype(np.uint8) if flags is None
+             else np.asarray(flags, np.uint8))
     names = channels or [interface]
     chan = np.zeros(n, np.uint8) if channel is None else np.asarray(channel, np.uint8)
     encoded = [name.encode("ascii") for name in names]

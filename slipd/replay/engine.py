@@ -17,7 +17,7 @@ import numpy as np
 from slipd.channels import N_OUT, U_LEN
 from slipd.codec import Codec, kernels
 from slipd.codec.kernels import ERROR_NAMES
-from slipd.errors import LogFormatError
+from slipd.errors import ConfigError, LogFormatError
 from slipd.estimators import base
 from slipd.estimators.supervision import required_mask, supervise_ticks
 from slipd.profile import Profile, load_profile
@@ -56,14 +56,15 @@ def tick_grid(frames: Frames, dt: float = TICK_DT) -> np.ndarray:
     return start + dt * np.arange(count)
 
 
-def recorded_ticks(frames: Frames) -> tuple[Frames, np.ndarray, np.ndarray] | None:
+def recorded_ticks(frames: Frames, profile: Profile | None = None
+                   ) -> tuple[Frames, np.ndarray, np.ndarray] | None:
     """Ticks of a slipd flight-recorder log: its sent SLIPD_STATE frames (marked T).
 
     Returns (input frames, tick times, frames latched before each tick), or None when the
     log holds no slipd output. In the recorder, file order is processing order, so a tick
     latches exactly the input lines above its SLIPD_STATE line.
     """
-    plan = Codec.output_plan()
+    plan = Codec.output_plan(profile)
     state_id = plan.frame_id("SLIPD_STATE")
     outputs = {plan.frame_id(n) for n in plan.message_names}
     sent = (frames.flags & FLAG_TX) != 0
@@ -76,8 +77,69 @@ def recorded_ticks(frames: Frames) -> tuple[Frames, np.ndarray, np.ndarray] | No
     return frames.select(~is_output), frames.t[ticks].copy(), tick_until
 
 
+def frame_buses(frames: Frames, codec: Codec, bus_map: dict[str, str] | None = None
+                ) -> np.ndarray:
+    """Each frame's bus index in the profile (-1: a log channel the profile does not read).
+
+    ``bus_map`` maps the profile's bus names to the log's channel names (``--bus
+    chassis=can0``). Without one, a bus is the log channel of the same name; a one-bus profile
+    reads the one log channel that carries its frames. Two log channels are never merged onto
+    one bus (their counters and latches would mix), so an ambiguous log is an error that names
+    the channels.
+    """
+    buses = codec.inputs.buses
+    names = list(frames.channels)
+    result = np.full(len(frames), -1, dtype=np.int64)
+    if bus_map:
+        unknown = sorted(set(bus_map) - set(buses))
+        if unknown:
+            raise ConfigError(f"--bus {unknown[0]}=...: profile {codec.profile.name} has no "
+                              f"bus {unknown[0]!r}; its buses: {list(buses)}")
+        chosen = dict(bus_map)
+    else:
+        chosen = {bus: bus for bus in buses if bus in names}
+    if len(buses) == 1 and buses[0] not in chosen:
+        carrying = _channels_carrying(frames, codec)
+        if len(carrying) > 1:
+            raise ConfigError(
+                f"{frames.source}: channels {carrying} all carry frames of profile "
+                f"{codec.profile.name}'s bus {buses[0]!r}; name the one to read: "
+                f"--bus {buses[0]}={carrying[0]}")
+        if len(names) == 1 or carrying:
+            chosen[buses[0]] = carrying[0] if carrying else names[0]
+    missing = [bus for bus in buses if bus not in chosen and bus in codec.profile.buses
+               and any(codec.inputs.bus(m) == bus for m in codec.inputs.message_names)]
+    if missing and len(frames):
+        raise ConfigError(
+            f"{frames.source}: no log channel for bus(es) {missing} of profile "
+            f"{codec.profile.name}; the log's channels are {names}: map them with "
+            f"--bus {missing[0]}=CHANNEL")
+    for bus, channel in chosen.items():
+        if channel not in names:
+            if bus_map:
+                raise ConfigError(f"--bus {bus}={channel}: {frames.source} has no channel "
+                                  f"{channel!r}; its channels: {names}")
+            continue
+        result[frames.channel == names.index(channel)] = buses.index(bus)
+    return result
+
+
+def _channels_carrying(frames: Frames, codec: Codec) -> list[str]:
+    """Log channels with at least one frame of an input ID of the profile."""
+    known = {(codec.inputs.frame_id(n), codec.inputs.is_extended(n))
+             for n in codec.inputs.message_names}
+    extended = (frames.flags & 1) != 0
+    result = []
+    for index, name in enumerate(frames.channels):
+        on = frames.channel == index
+        if any(np.any(on & (frames.frame_id == fid) & (extended == ext)) for fid, ext in known):
+            result.append(name)
+    return result
+
+
 def latch_log(frames: Frames, profile: Profile, tick_time: np.ndarray | None = None,
-              dt: float = TICK_DT, tick_until: np.ndarray | None = None) -> Inputs:
+              dt: float = TICK_DT, tick_until: np.ndarray | None = None,
+              bus_map: dict[str, str] | None = None) -> Inputs:
     """Decode ``frames`` and sample the latch at every tick (``tick_time`` or the grid)."""
     if tick_until is None and len(frames) and np.any(np.diff(frames.t) < 0):
         bad = int(np.flatnonzero(np.diff(frames.t) < 0)[0]) + 1
@@ -89,21 +151,24 @@ def latch_log(frames: Frames, profile: Profile, tick_time: np.ndarray | None = N
     if tick_until is None:
         tick_until = np.searchsorted(frames.t, ticks, side="right").astype(np.int64)
     p, s = codec.inputs, codec.state
-    data = frames.data if frames.data.shape[1] >= 8 else np.pad(
-        frames.data, ((0, 0), (0, 8 - frames.data.shape[1])))
+    width = max(8, p.max_dlc)
+    data = frames.data if frames.data.shape[1] >= width else np.pad(
+        frames.data, ((0, 0), (0, width - frames.data.shape[1])))
+    buses = frame_buses(frames, codec, bus_map)
     kernels.latch_ticks(p.plan_i, p.plan_f, p.lookup, p.timeouts, codec.channel_timeouts,
-                        frames.t, frames.frame_id, frames.flags, frames.dlc.astype(np.int64),
+                        frames.t, buses, frames.frame_id, frames.flags, frames.dlc.astype(np.int64),
                         data, ticks, tick_until, s.latch, s.msg_state, s.errors, U)
     return Inputs(ticks, U, codec.error_counts(), len(frames))
 
 
-def latch_log_or_recording(frames: Frames, profile: Profile) -> Inputs:
+def latch_log_or_recording(frames: Frames, profile: Profile,
+                           bus_map: dict[str, str] | None = None) -> Inputs:
     """Latch on the recorded ticks of a flight-recorder log, else on the 100 Hz grid."""
-    recorded = recorded_ticks(frames)
+    recorded = recorded_ticks(frames, profile)
     if recorded is None:
-        return latch_log(frames, profile)
+        return latch_log(frames, profile, bus_map=bus_map)
     inputs, tick_time, tick_until = recorded
-    latched = latch_log(inputs, profile, tick_time, tick_until=tick_until)
+    latched = latch_log(inputs, profile, tick_time, tick_until=tick_until, bus_map=bus_map)
     steps = base.steps_per_tick(tick_time, TICK_DT)
     if np.any(steps > 1):
         latched.steps = steps
@@ -127,11 +192,12 @@ def run_method(inputs: Inputs, profile: Profile, name: str,
 
 
 def run_log(log_path: str | Path, profile: Profile | str, method_names: list[str],
-            skip_bad: bool = False) -> dict[str, Estimate]:
+            skip_bad: bool = False, bus_map: dict[str, str] | None = None
+            ) -> dict[str, Estimate]:
     """Read, decode and estimate a whole log with each method in ``method_names``."""
     profile = load_profile(profile) if isinstance(profile, str) else profile
     frames = read_frames(log_path, skip_bad=skip_bad)
-    inputs = latch_log_or_recording(frames, profile)
+    inputs = latch_log_or_recording(frames, profile, bus_map)
     return {name: run_method(inputs, profile, name) for name in method_names}
 
 

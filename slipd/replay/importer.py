@@ -386,10 +386,10 @@ def import_table(source: Path, profile: Profile, maps: list[ColumnMap], out: Pat
             values[channel] = array
             report.derived[channel.name.lower()] = how
 
-    import cantools
+    from slipd.codec.plan import load_dbc
 
     codec = Codec.from_profile(profile)
-    db = cantools.database.load_file(str(profile.dbc_path))
+    db = load_dbc(profile.dbc_path)  # production DBCs load non-strictly, as the codec's
     stamps, ids, payloads, dlcs, rank = [], [], [], [], []
     for order, (name, mmap) in enumerate(profile.messages.items()):
         channels = mmap.channels
@@ -408,7 +408,7 @@ def import_table(source: Path, profile: Profile, maps: list[ColumnMap], out: Pat
         _count_clamped(db, profile, name, selected, report)
         frame_id, data = codec.encode_channels(name, selected, first_counter=0)
         count = int(rows.sum())
-        padded = np.zeros((count, 8), dtype=np.uint8)
+        padded = np.zeros((count, max(8, data.shape[1])), dtype=np.uint8)
         padded[:, : data.shape[1]] = data
         stamps.append(t[rows])
         ids.append(np.full(count, frame_id, dtype=np.int64))
@@ -424,6 +424,8 @@ def import_table(source: Path, profile: Profile, maps: list[ColumnMap], out: Pat
     if not stamps:
         raise ConfigError(f"{source}: no message of profile {profile.name} has all its channels "
                           f"in the data; incomplete: {report.left_out}")
+    width = max(p.shape[1] for p in payloads)
+    payloads = [np.pad(p, ((0, 0), (0, width - p.shape[1]))) for p in payloads]
     all_t = np.round(np.concatenate(stamps) * 1e6) / 1e6
     order = np.lexsort((np.concatenate(rank), all_t))
     report.frames = write_candump(out, all_t[order], np.concatenate(ids)[order],

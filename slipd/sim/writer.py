@@ -107,7 +107,8 @@ def read_truth_csv(path: str | Path) -> tuple[dict[str, np.ndarray], float]:
 
 
 def encode_frames(result: SimResult, profile, epoch: float = START_EPOCH):
-    """Every transmission through the codec, time-sorted: (t, frame_id, data [n, 8], dlc)."""
+    """Every transmission through the codec, time-sorted: (t, frame_id, data [n, width], dlc);
+    width is 8, or the longest CAN FD frame of the profile."""
     from slipd.codec import Codec
 
     codec = Codec.from_profile(profile)
@@ -115,7 +116,8 @@ def encode_frames(result: SimResult, profile, epoch: float = START_EPOCH):
     for rank, (name, msg) in enumerate(result.sensors.items()):
         frame_id, data = codec.encode_channels(name, msg.values)
         n = len(msg.t)
-        padded = np.zeros((n, 8), dtype=np.uint8)
+        padded = np.zeros((n, codec.inputs.max_dlc if codec.inputs.max_dlc > 8 else 8),
+                          dtype=np.uint8)
         padded[:, : data.shape[1]] = data
         stamps.append(np.round((epoch + msg.t) * 1e6) / 1e6)
         ids.append(np.full(n, frame_id, dtype=np.int64))
