@@ -151,7 +151,25 @@ def _load_dbc(path: str, _mtime_ns: int, _size: int):
     try:
         return cantools.database.load_file(path, strict=False)
     except Exception as exc:  # cantools raises several parser error types
-        raise CodecError(f"{path}: cannot parse DBC: {exc}") from exc
+        first = exc
+    # opendbc's generated DBCs carry a few comments cantools' grammar refuses (``CM_ SG_ 304
+    # "text"`` without a signal name); comments never change how a frame decodes, so such
+    # lines are dropped and the file parsed again.
+    try:
+        lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        lines = []
+    for _ in range(50):
+        match = re.search(r"at line (\d+)", str(first))
+        if not match or not lines[int(match.group(1)) - 1].lstrip().startswith("CM_"):
+            break
+        del lines[int(match.group(1)) - 1]
+        try:
+            return cantools.database.load_string("\n".join(lines) + "\n",
+                                                 database_format="dbc", strict=False)
+        except Exception as exc:  # noqa: BLE001 - the next unparsable comment, or worse
+            first = exc
+    raise CodecError(f"{path}: cannot parse DBC: {first}") from first
 
 
 def _signal_row(signal, where: str, length_bytes: int) -> tuple[list[int], list[float]]:
