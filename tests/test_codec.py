@@ -44,8 +44,11 @@ def _physical(plan, row, payload):
     [
         (DEFAULT.dbc_path, list(DEFAULT.messages) + list(OUTPUT_MESSAGES)),
         (TOYOTA.dbc_path, list(TOYOTA.messages)),
+        (load_profile("vw_golf_mk7").dbc_path, ["ESP_02", "LWI_01", "ESP_19", "ESP_21"]),
+        (load_profile("hyundai_ioniq_5").dbc_path,  # CAN FD: 16, 24 and 32 bytes, 64-bit
+         ["STEERING_SENSORS", "WHEEL_SPEEDS", "ESC_02_10ms", "IMU_01_10ms"]),
     ],
-    ids=["slipd.dbc", "toyota_2017.dbc"],
+    ids=["slipd.dbc", "toyota_2017.dbc", "vw_mqb.dbc", "hyundai_canfd.dbc"],
 )
 @settings(max_examples=150, deadline=None)
 @given(data=st.data())
@@ -282,3 +285,60 @@ def test_input_plan_compiles_for_shipped_profiles():
         plan = compile_input_plan(profile)
         assert plan.n_messages == len(profile.messages)
     assert compile_output_plan().n_messages == 3
+
+
+def test_value_table_codes_mark_a_value_not_available(tmp_path):
+    """A raw value the DBC's value table names "Init"/"not available" invalidates the channel
+    at once (the frame's other channels are used); an explicit invalid_values list wins."""
+    from dataclasses import replace
+
+    from slipd.codec.plan import _build, input_signal_specs
+
+    dbc = tmp_path / "vt.dbc"
+    dbc.write_text(
+        'VERSION ""\n\nNS_ :\n\nBS_:\n\nBU_: A\n\n'
+        "BO_ 100 RATES: 8 A\n"
+        ' SG_ YAW : 0|16@1- (0.01,0) [-300|300] "deg/s" A\n'
+        ' SG_ AY : 16|16@1- (0.001,0) [-30|30] "m/s^2" A\n\n'
+        'VAL_ 100 YAW 32767 "Init" 32766 "Signal not available" 0 "zero" ;\n')
+    profile = replace(DEFAULT, dbc_path=dbc)
+    specs = input_signal_specs(DEFAULT)  # reuse the SignalSpec shape of a real channel
+    yaw_spec = next(v for _, _, sigs in specs for k, v in sigs.items() if k == "YAW_RATE")
+    ay_spec = next(v for _, _, sigs in specs for k, v in sigs.items() if k == "ACCEL_Y")
+    from slipd.profile import MessageMap
+
+    mmap = MessageMap("RATES", "none", 100.0, 0.05, ())
+    for invalid, codes in ((None, (32766, 32767)), ((5,), (5,))):
+        plan = _build(dbc, [("RATES", mmap, {
+            "YAW": replace(yaw_spec, factor=math.radians(1.0), invalid_values=invalid),
+            "AY": replace(ay_spec, factor=1.0)})])
+        row = plan.plan_i[0, kernels.M_SIG_FIRST]
+        n = plan.plan_i[row, kernels.S_N_INVALID]
+        assert tuple(plan.plan_i[row, kernels.S_INVALID:kernels.S_INVALID + n]) == codes
+    plan = _build(dbc, [("RATES", mmap, {
+        "YAW": replace(yaw_spec, factor=math.radians(1.0), invalid_values=None),
+        "AY": replace(ay_spec, factor=1.0)})])
+    from slipd.codec import DecodeState
+
+    state = DecodeState.new(1)
+    u = new_u()
+
+    def decode(raw_yaw, t):
+        payload = np.zeros(8, np.uint8)
+        payload[0:2] = np.frombuffer(int(raw_yaw).to_bytes(2, "little", signed=True), np.uint8)
+        payload[2:4] = np.frombuffer(int(1500).to_bytes(2, "little", signed=True), np.uint8)
+        got = kernels.decode_frame(plan.plan_i, plan.plan_f, plan.lookup, 0, 100, False, 8,
+                                   payload, t, plan.timeouts, state.latch, state.msg_state,
+                                   state.errors, state.scratch)
+        timeouts = np.full(len(u) // 2, 1.0)
+        kernels.sample_latch(state.latch, timeouts, t, u)
+        return got
+
+    assert decode(1000, 0.0) == 0 and u[VALID + In.YAW_RATE] == 1.0
+    assert u[In.YAW_RATE] == pytest.approx(math.radians(10.0))
+    assert decode(32767, 0.01) == 0  # "Init": accepted frame, yaw invalid, ay fresh
+    assert u[VALID + In.YAW_RATE] == 0.0 and u[VALID + In.AY] == 1.0
+    assert u[In.AY] == pytest.approx(1.5)
+    assert state.errors[0, kernels.ERR_NOT_AVAILABLE] == 1
+    assert decode(1100, 0.02) == 0 and u[VALID + In.YAW_RATE] == 1.0
+    assert profile.dbc_path == dbc
