@@ -326,7 +326,7 @@ def test_value_table_codes_mark_a_value_not_available(tmp_path):
     def decode(raw_yaw, t):
         payload = np.zeros(8, np.uint8)
         payload[0:2] = np.frombuffer(int(raw_yaw).to_bytes(2, "little", signed=True), np.uint8)
-        payload[2:4] = np.frombuffer(int(1500).to_bytes(2, "little", signed=True), np.uint8)
+        payload[2:4] = np.frombuffer((1500).to_bytes(2, "little", signed=True), np.uint8)
         got = kernels.decode_frame(plan.plan_i, plan.plan_f, plan.lookup, 0, 100, False, 8,
                                    payload, t, plan.timeouts, state.latch, state.msg_state,
                                    state.errors, state.scratch)
