@@ -22,6 +22,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stats": ("slipd.commands.stats", "show a running daemon's latency statistics"),
     "import": ("slipd.commands.import_log", "turn recorded signals (CSV, .mat) into a candump "
                "log through the codec"),
+    "profile": ("slipd.commands.profile", "propose a profile from a DBC (scaffold) or check "
+                "one on a real log (check)"),
+    "decode": ("slipd.commands.decode", "decode a log into slipd's SI input channels per tick "
+               "(CSV or Parquet)"),
 }
 
 

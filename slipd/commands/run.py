@@ -14,6 +14,22 @@ CONFIG_KEYS = {"profile", "interface", "channel", "estimator", "recorder", "stat
                "gc_freeze", "spin_us"}
 
 
+def parse_bus_map(entries: list[str]) -> dict[str, str]:
+    """``--bus NAME=CHANNEL`` entries -> {profile bus name: interface channel}."""
+    from slipd.errors import ConfigError
+
+    mapping: dict[str, str] = {}
+    for entry in entries:
+        for item in filter(None, (part.strip() for part in entry.split(","))):
+            name, sep, channel = item.partition("=")
+            if not sep or not name or not channel:
+                raise ConfigError(f"--bus {item!r}: expected BUS=CHANNEL, e.g. chassis=can0")
+            if name in mapping:
+                raise ConfigError(f"--bus {name}: given twice ({mapping[name]!r}, {channel!r})")
+            mapping[name] = channel
+    return mapping
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None,
                         help=f"TOML config file (default {SYSTEM_CONFIG} when it exists); "
