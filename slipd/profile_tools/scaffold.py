@@ -90,10 +90,9 @@ def _stem(name: str) -> str:
 def _score(channel: In, signal, message) -> tuple[int, str] | None:
     name = signal.name
     text = f"{name} {signal.comment or ''}"
-    for rank, pattern in enumerate(PATTERNS[channel]):
-        if re.search(pattern, name, re.IGNORECASE) or re.search(pattern, text, re.IGNORECASE):
-            break
-    else:
+    rank = next((k for k, pattern in enumerate(PATTERNS[channel])
+                 if re.search(pattern, text, re.IGNORECASE)), None)
+    if rank is None:
         return None
     if signal.length < 6 or SIGN_WORDS.search(name) or QUALIFIER_WORDS.search(name) or \
             CHECKSUM_WORDS.search(name) or COUNTER_WORDS.search(name):
