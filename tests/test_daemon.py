@@ -437,7 +437,7 @@ def test_a_frame_received_after_the_tick_time_waits_for_the_next_tick():
     queue[:] = [before, after]
     daemon._receive_until(deadline, deadline)  # stamps below on the monotonic clock
     latch_time = daemon.codec.state.latch[LATCH_TIME]
-    assert daemon.stats.counters["rx_frames"] == 1 and daemon._deferred is after
+    assert daemon.stats.counters["rx_frames"] == 1 and daemon._deferred == (after, 0)
     assert latch_time[In.YAW_RATE] == pytest.approx(before.timestamp)
     next_deadline = round(time.monotonic() - 0.001, 6)
     daemon._receive_until(next_deadline, next_deadline)  # the next tick

@@ -111,7 +111,7 @@ def test_map_plays_each_logged_channel_on_its_bus(tmp_path):
         channels=["can0", "can1", "can2"],
     )
     suffix = uuid.uuid4()
-    mapping = parse_map([f"can0=a-{suffix}", f"can1=b-{suffix}"])
+    mapping = parse_map([f"a-{suffix}=can0", f"b-{suffix}=can1"])  # canplayer: WRITE=LOG
     router = BusRouter("virtual", "unused", mapping)
     try:
         with (

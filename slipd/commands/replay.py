@@ -29,13 +29,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     player = parser.add_argument_group("real-time player")
     player.add_argument("--realtime", action="store_true",
                         help="play the log onto a bus with its timing instead of estimating")
-    player.add_argument("--interface", default="socketcan",
+    player.add_argument("-i", "--interface", default="socketcan",
                         help="python-can interface (socketcan, virtual, ...)")
-    player.add_argument("--channel", default="vcan0", help="bus channel (default vcan0)")
+    player.add_argument("-c", "--channel", default="vcan0", help="bus channel (default vcan0)")
+    player.add_argument("--fd", action="store_true", help="open the bus for CAN FD frames")
     player.add_argument("--speed", type=float, default=1.0, help="time scale (2 = twice as fast)")
     player.add_argument("--loop", action="store_true", help="repeat the log until interrupted")
-    player.add_argument("--map", action="append", default=[], metavar="FROM=TO",
-                        help="play frames logged on channel FROM onto bus channel TO")
+    player.add_argument("--map", action="append", default=[], metavar="WRITE=LOG",
+                        help="play frames logged on channel LOG onto bus channel WRITE "
+                             "(canplayer's order: vcan1=can0)")
+    parser.add_argument("--bus", action="append", default=[], metavar="BUS=CHANNEL",
+                        help="estimate from the log's channel CHANNEL as the profile's bus BUS "
+                             "(as slipd run --bus); two channels are never merged")
 
 
 def _methods(name: str) -> list[str]:
@@ -50,7 +55,7 @@ def _methods(name: str) -> list[str]:
 
 
 def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | None,
-               candump: Path | None, skip_bad: bool) -> str:
+               candump: Path | None, skip_bad: bool, bus_map: dict | None = None) -> str:
     """Replay one log; returns the summary text."""
     import time
 
@@ -66,7 +71,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     for name in methods:
         base.load(name)  # unknown names fail before the log is read
     frames = read_frames(log, skip_bad=skip_bad)
-    inputs = latch_log_or_recording(frames, profile)
+    inputs = latch_log_or_recording(frames, profile, bus_map)
     estimates = [run_method(inputs, profile, name) for name in methods]
     elapsed = time.perf_counter() - started
     lines = [f"{log}: {len(frames)} frames, {len(inputs.t)} ticks, {elapsed:.2f} s "
@@ -96,6 +101,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
 
 
 def run(args: argparse.Namespace) -> int:
+    from slipd.commands.run import parse_bus_map
     from slipd.errors import ConfigError
 
     if args.realtime:
@@ -111,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
         if out is not None and len(args.logs) > 1:
             out.mkdir(parents=True, exist_ok=True)
             out = out / (log.name.split(".")[0] + f".{args.format}")
-        targets.append((log, args.profile, methods, out, args.candump, args.skip_bad))
+        targets.append((log, args.profile, methods, out, args.candump, args.skip_bad,
+                        parse_bus_map(args.bus) or None))
     if len(targets) == 1:
         print(replay_one(*targets[0]))
         return 0

@@ -11,7 +11,7 @@ SYSTEM_CONFIG = Path("/etc/slipd/slipd.toml")
 #: config-file keys (same names as the options, with underscores)
 CONFIG_KEYS = {"profile", "interface", "channel", "estimator", "recorder", "stats_socket",
                "prometheus", "state_file", "sched_fifo", "cpu", "mlockall", "timer_slack_ns",
-               "gc_freeze", "spin_us"}
+               "gc_freeze", "spin_us", "buses", "bitrate", "fd", "bus_kwargs", "listen_only"}
 
 
 def parse_bus_map(entries: list[str]) -> dict[str, str]:
@@ -35,8 +35,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"TOML config file (default {SYSTEM_CONFIG} when it exists); "
                              "command-line options override it")
     parser.add_argument("--profile", help="vehicle profile name or TOML path (default: default)")
-    parser.add_argument("--interface", help="python-can interface (default socketcan)")
-    parser.add_argument("--channel", help="bus channel (default can0)")
+    bus = parser.add_argument_group(
+        "CAN bus (python-can's conventions; its config file ~/can.conf or $CAN_INTERFACE/"
+        "$CAN_CHANNEL fill what neither these options nor --config give)")
+    bus.add_argument("-i", "--interface", help="python-can interface (default socketcan)")
+    bus.add_argument("-c", "--channel", help="bus channel of a one-bus profile (default can0)")
+    bus.add_argument("--bus", action="append", default=None, metavar="NAME=CHANNEL",
+                     help="the channel of the profile's bus NAME, e.g. --bus chassis=can0 "
+                          "--bus pt=can1")
+    bus.add_argument("--bitrate", type=int, help="bit rate, for interfaces that set it")
+    bus.add_argument("--fd", action="store_true", default=None,
+                     help="CAN FD frames (on by itself where the profile has FD frames)")
+    bus.add_argument("--bus-kwargs", nargs="+", default=None, metavar="KEY=VALUE",
+                     help="more arguments for python-can's Bus(), e.g. receive_own_messages=1")
+    bus.add_argument("--listen-only", action="store_true", default=None,
+                     help="estimate and record, send nothing (a first drive on an unknown car)")
     parser.add_argument("--estimator", help="method (default kinematic_heuristic)")
     parser.add_argument("--duration", type=float, help="stop after S seconds")
     parser.add_argument("--recorder", type=Path, help="flight-recorder candump log")
@@ -68,6 +81,7 @@ def _settings(args: argparse.Namespace) -> dict:
                 "estimator": "kinematic_heuristic", "sched_fifo": 0, "mlockall": False,
                 "gc_freeze": False}
     path = args.config or (SYSTEM_CONFIG if SYSTEM_CONFIG.exists() else None)
+    document_keys: set[str] = set()
     if path is not None:
         try:
             document = tomllib.loads(Path(path).read_text())
@@ -78,11 +92,73 @@ def _settings(args: argparse.Namespace) -> dict:
             raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)}; expected "
                               f"{sorted(CONFIG_KEYS)}")
         settings.update(document)
+        document_keys = set(document)
     for key in CONFIG_KEYS:
         value = getattr(args, key, None)
         if value is not None:
             settings[key] = value
+    if getattr(args, "bus", None):
+        settings["buses"] = parse_bus_map(args.bus)
+    if getattr(args, "bus_kwargs", None):
+        settings["bus_kwargs"] = parse_bus_kwargs(args.bus_kwargs)
+    _python_can_config(settings, given={k for k in ("interface", "channel", "bitrate", "fd")
+                                        if getattr(args, k, None) is not None
+                                        or (document_keys and k in document_keys)})
+    _check_bus_settings(settings, path)
     return settings
+
+
+def parse_bus_kwargs(entries: list[str]) -> dict:
+    """``KEY=VALUE`` -> {key: value}, values as python-can's CLI reads them (int, float,
+    true/false, else text)."""
+    from slipd.errors import ConfigError
+
+    result = {}
+    for entry in entries:
+        key, sep, text = entry.partition("=")
+        if not sep or not key.isidentifier():
+            raise ConfigError(f"--bus-kwargs {entry!r}: expected KEY=VALUE")
+        value: object = text
+        for cast in (int, float):
+            try:
+                value = cast(text)
+                break
+            except ValueError:
+                continue
+        if text.lower() in ("true", "false"):
+            value = text.lower() == "true"
+        result[key] = value
+    return result
+
+
+def _python_can_config(settings: dict, given: set[str]) -> None:
+    """Fill interface/channel/bitrate/fd not given on the command line or in --config from
+    python-can's own configuration (~/can.conf, ~/.canrc, can.ini, $CAN_INTERFACE, ...)."""
+    try:
+        import can
+
+        found = can.util.load_config(config={k: settings[k] for k in given if k in settings})
+    except Exception:  # noqa: BLE001 - no python-can config: slipd's defaults stand
+        return
+    for key in ("interface", "channel", "bitrate", "fd"):
+        if key not in given and found.get(key) not in (None, ""):
+            settings[key] = found[key]
+
+
+def _check_bus_settings(settings: dict, path) -> None:
+    from slipd.errors import ConfigError
+
+    where = f"{path}: " if path else ""
+    buses = settings.get("buses", {})
+    if not isinstance(buses, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                              for k, v in buses.items()):
+        raise ConfigError(f"{where}buses = {buses!r}; expected a table NAME = \"CHANNEL\"")
+    for key, kind in (("bitrate", int), ("fd", bool), ("listen_only", bool),
+                      ("bus_kwargs", dict), ("channel", str), ("interface", str)):
+        value = settings.get(key)
+        if value is not None and (not isinstance(value, kind) or (
+                kind is int and isinstance(value, bool))):
+            raise ConfigError(f"{where}{key} = {value!r}; expected {kind.__name__}")
 
 
 def _skip_numba_blas_probe() -> None:
@@ -113,7 +189,9 @@ def run(args: argparse.Namespace) -> int:
     s = _settings(args)
     config = DaemonConfig(
         profile=load_profile(s["profile"]), estimator=s["estimator"],
-        interface=s["interface"], channel=s["channel"],
+        interface=s["interface"], channel=str(s["channel"]), buses=dict(s.get("buses") or {}),
+        fd=s.get("fd"), bitrate=s.get("bitrate"), bus_kwargs=dict(s.get("bus_kwargs") or {}),
+        listen_only=bool(s.get("listen_only")),
         recorder=Path(s["recorder"]) if s.get("recorder") else None,
         stats_socket=s.get("stats_socket"), prometheus=s.get("prometheus"),
         state_file=Path(s["state_file"]) if s.get("state_file") else None,

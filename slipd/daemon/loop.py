@@ -36,7 +36,8 @@ from slipd.daemon.service import (
     release_compiler_pages,
 )
 from slipd.daemon.stats import Stats, StatsServer
-from slipd.daemon.transmit import PAYLOAD, QUEUE_FULL, frame_buffer, frame_writer
+from slipd.daemon.transmit import QUEUE_FULL, frame_buffer, frame_writer, payload
+from slipd.errors import ConfigError
 from slipd.estimators import base
 from slipd.estimators.supervision import required_mask, supervise
 from slipd.profile import Profile
@@ -56,6 +57,12 @@ class DaemonConfig:
     estimator: str = "kinematic_heuristic"
     interface: str = "socketcan"
     channel: str = "can0"
+    #: profile bus name -> channel (``--bus chassis=can0``); a one-bus profile needs none
+    buses: dict[str, str] = field(default_factory=dict)
+    fd: bool | None = None  # CAN FD frames on the sockets; None: where the profile needs them
+    bitrate: int | None = None
+    bus_kwargs: dict = field(default_factory=dict)  # more python-can Bus() arguments
+    listen_only: bool = False  # estimate and record, send nothing (also [outputs] listen_only)
     recorder: Path | None = None
     recorder_max_bytes: int = 256 * 1024 * 1024
     stats_socket: str | None = None
@@ -65,19 +72,68 @@ class DaemonConfig:
     duration: float | None = None  # s; None = until SIGTERM/SIGINT
 
 
-def open_bus(config: DaemonConfig, plan_ids: list[tuple[int, bool]]):
-    """A python-can bus with kernel RX filters for the profile's input IDs."""
+def bus_channels(config: DaemonConfig) -> dict[str, str]:
+    """Each of the profile's buses (inputs and outputs) -> its interface channel."""
+    names = config.profile.buses
+    unknown = sorted(set(config.buses) - set(names))
+    if unknown:
+        raise ConfigError(f"--bus {unknown[0]}=...: profile {config.profile.name} has no bus "
+                          f"{unknown[0]!r}; its buses: {list(names)}")
+    if len(names) == 1:
+        return {names[0]: config.buses.get(names[0], config.channel)}
+    missing = [n for n in names if n not in config.buses]
+    if missing:
+        raise ConfigError(f"profile {config.profile.name} reads buses {list(names)}; give "
+                          f"each its interface: " + " ".join(f"--bus {n}=CHANNEL"
+                                                            for n in missing))
+    channels = {n: config.buses[n] for n in names}
+    if len(set(channels.values())) != len(channels):
+        raise ConfigError(f"--bus: two profile buses on one channel {channels}; a channel "
+                          "carries one bus")
+    return channels
+
+
+def open_bus(config: DaemonConfig, plan_ids: list[tuple[int, bool]], channel: str | None = None,
+             fd: bool = False):
+    """A python-can bus with kernel RX filters for the profile's input IDs (CAN FD frames
+    enabled with ``fd``: CAN_RAW_FD_FRAMES on SocketCAN)."""
     import can
 
     filters = [{"can_id": frame_id, "can_mask": 0x1FFFFFFF if ext else 0x7FF, "extended": ext}
                for frame_id, ext in plan_ids]
-    kwargs = {"interface": config.interface, "channel": config.channel, "can_filters": filters}
+    if not filters:  # a bus slipd only sends on: receive nothing
+        filters = [{"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}]
+    kwargs = {**config.bus_kwargs, "interface": config.interface,
+              "channel": channel if channel is not None else config.channel,
+              "can_filters": filters}
+    if fd:
+        kwargs["fd"] = True
+    if config.bitrate is not None:
+        kwargs["bitrate"] = config.bitrate
     if config.interface == "socketcan":
         kwargs["ignore_rx_error_frames"] = True
     bus = can.Bus(**kwargs)
     if config.interface == "socketcan":
         _enlarge_receive_buffer(bus.socket)
+        if fd:
+            _require_fd(bus, kwargs["channel"])
     return bus
+
+
+def _require_fd(bus, channel: str) -> None:
+    """python-can only logs a refused CAN_RAW_FD_FRAMES; a profile with FD frames needs it."""
+    sol_can_raw, can_raw_fd_frames = 101, 5  # <linux/can/raw.h>
+    try:
+        enabled = bus.socket.getsockopt(sol_can_raw, can_raw_fd_frames)
+    except OSError as exc:
+        enabled, why = 0, exc.strerror
+    else:
+        why = "the socket refused CAN_RAW_FD_FRAMES"
+    if not enabled:
+        bus.shutdown()
+        raise ConfigError(f"{channel}: CAN FD frames are needed (the profile has frames over "
+                          f"8 bytes or FD outputs) but {why}; is the interface FD-capable "
+                          f"(mtu 72)?")
 
 
 def _enlarge_receive_buffer(sock) -> None:
@@ -104,6 +160,39 @@ def _log_line(line: str) -> None:
     a pipe to the journal, block-buffered by Python: a bus failure would show up kilobytes
     of log later)."""
     print(line, flush=True)
+
+
+def _recv_any(buses, timeout: float):
+    """The first frame of several buses: select() on their file descriptors where each has
+    one, else a polling loop (0.2 ms sleeps) for buses without (python-can's virtual bus)."""
+    import select
+
+    deadline = time.monotonic() + timeout
+    try:
+        fds = [bus.fileno() for bus in buses]
+    except (AttributeError, NotImplementedError, OSError):
+        fds = None
+    if fds is not None and all(isinstance(fd, int) and fd >= 0 for fd in fds):
+        while True:
+            for index, bus in enumerate(buses):  # frames already buffered by python-can
+                message = bus.recv(timeout=0.0)
+                if message is not None:
+                    return message, index
+            remaining = deadline - time.monotonic()
+            if remaining <= 0.0:
+                return None, -1
+            ready, _, _ = select.select(fds, [], [], remaining)
+            if not ready:
+                return None, -1
+    while True:
+        for index, bus in enumerate(buses):
+            message = bus.recv(timeout=0.0)
+            if message is not None:
+                return message, index
+        remaining = deadline - time.monotonic()
+        if remaining <= 0.0:
+            return None, -1
+        time.sleep(min(remaining, 0.0002))
 
 
 def interface_is_up(channel: str) -> bool | None:
@@ -146,7 +235,7 @@ class Daemon:
         self._dry_state = self.state.copy()
         self._dry_u, self._dry_out, self._dry_tx = new_u(), np.zeros(N_OUT), np.zeros(N_TX)
         self._dry_frame = frame_buffer(0)
-        self._dry_payload = self._dry_frame[PAYLOAD]
+        self._dry_payload = payload(self._dry_frame)
         self._dry_decode = DecodeState.new(self.codec.inputs.n_messages)
         self._last_message = None  # the newest received frame, decoded again by dry runs
         self.spin = config.realtime.spin_us * 1e-6
@@ -158,21 +247,47 @@ class Daemon:
         self._syscall_warmer = (socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
                                 if self.spin > 0 else None)
         plan = self.codec.inputs
-        self.plan_ids = [(plan.frame_id(n), plan.is_extended(n)) for n in plan.message_names]
-        self.bus = bus if bus is not None else open_bus(config, self.plan_ids)
-        self._owns_bus = bus is None
-        self._write_frame = frame_writer(self.bus)
+        profile = config.profile
+        self.bus_names = plan.buses  # profile bus order: the codec's bus indices
+        self.channels = bus_channels(config) if bus is None or isinstance(bus, dict) else {
+            name: config.buses.get(name, config.channel) for name in self.bus_names}
         outputs = self.codec.outputs
+        self.output_bus = self.bus_names.index(profile.outputs.bus)
+        self.listen_only = config.listen_only or profile.outputs.listen_only
+        fd_needed = [any(plan.is_fd(n) for n in plan.message_names if plan.bus(n) == name)
+                     or (name == profile.outputs.bus and profile.outputs.fd)
+                     for name in self.bus_names]
+        self.fd = [config.fd if config.fd is not None else need for need in fd_needed]
+        for name, need, on in zip(self.bus_names, fd_needed, self.fd, strict=True):
+            if need and not on:
+                raise ConfigError(f"bus {name!r} carries CAN FD frames (the profile's), but "
+                                  "--fd is off")
+        self.plan_ids = [plan.ids_on(name) for name in self.bus_names]
+        if bus is None or isinstance(bus, dict):
+            given = bus or {}
+            self.buses = [given.get(name) or open_bus(config, self.plan_ids[k],
+                                                      self.channels[name], self.fd[k])
+                          for k, name in enumerate(self.bus_names)]
+        else:  # one bus object for every profile bus (tests, the demo)
+            self.buses = [bus] * len(self.bus_names)
+        self._owns_bus = bus is None
+        self.bus = self.buses[self.output_bus]
+        self._write_frame = frame_writer(self.bus)
         self._frame_ids = {name: outputs.frame_id(name) for name in OUTPUT_MESSAGES}
-        self._frames = {name: frame_buffer(frame_id)
-                        for name, frame_id in self._frame_ids.items()}
-        self._payloads = {name: frame[PAYLOAD] for name, frame in self._frames.items()}
+        self._frames = {name: frame_buffer(outputs.frame_id(name), outputs.is_extended(name),
+                                           outputs.dlc(name), outputs.is_fd(name))
+                        for name in OUTPUT_MESSAGES}
+        self._payloads = {name: payload(frame) for name, frame in self._frames.items()}
         # for buses without a frame writer (python-can's virtual bus of the demo and tests)
-        self._messages = {name: can.Message(arbitration_id=frame_id, is_extended_id=False,
-                                            data=bytes(8))
-                          for name, frame_id in self._frame_ids.items()}
+        self._messages = {name: can.Message(arbitration_id=outputs.frame_id(name),
+                                            is_extended_id=outputs.is_extended(name),
+                                            is_fd=outputs.is_fd(name),
+                                            bitrate_switch=outputs.is_fd(name),
+                                            data=bytes(outputs.dlc(name)))
+                          for name in OUTPUT_MESSAGES}
         self.recorder = (FlightRecorder(config.recorder, config.recorder_max_bytes,
-                                        config.channel) if config.recorder else None)
+                                        self.channels[profile.outputs.bus])
+                         if config.recorder else None)
         self.server = StatsServer(config.stats_socket, config.prometheus)
         self.bus_down_since: float | None = None
         self._next_reopen = 0.0
@@ -204,8 +319,9 @@ class Daemon:
 
         last = self._last_message
         if last is not None:  # a frame just before the tick then decodes hot
-            self.codec.decode(last.arbitration_id, last.data, t_wall, last.is_extended_id,
-                              state=self._dry_decode)
+            message, index = last
+            self.codec.decode(message.arbitration_id, message.data, t_wall,
+                              message.is_extended_id, state=self._dry_decode, bus=index)
         self._dry_state[:] = self.state
         self._estimate(t_wall, self._dry_state, self._dry_u, self._dry_out, self._dry_tx, 1)
         for name in TICK_MESSAGES:  # the send path's encode, alive counters untouched
@@ -230,7 +346,8 @@ class Daemon:
             self.log(f"slipd: cannot save state to {self.store.path}: {exc}")
 
     # ---- the loop -------------------------------------------------------------------------
-    def _on_frame(self, message) -> None:
+    def _on_frame(self, message, index: int = 0) -> None:
+        """Decode one frame received on the profile's bus ``index``."""
         if message.is_error_frame or message.is_remote_frame:
             return
         stats = self.stats
@@ -238,11 +355,12 @@ class Daemon:
         frame_id = message.arbitration_id
         stats.rx_per_id[frame_id] = stats.rx_per_id.get(frame_id, 0) + 1
         timestamp = _microseconds(message.timestamp)
-        self.codec.decode(frame_id, message.data, timestamp, message.is_extended_id)
-        self._last_message = message
+        self.codec.decode(frame_id, message.data, timestamp, message.is_extended_id, bus=index)
+        self._last_message = (message, index)
         if self.recorder is not None:
             self.recorder.frame(timestamp, frame_id, message.is_extended_id, message.data,
-                                rx=True)
+                                rx=True, channel=self.channels[self.bus_names[index]],
+                                fd=message.is_fd, brs=message.bitrate_switch)
 
     def _receive_until(self, deadline: float, t_tick: float) -> None:
         """Receive and decode frames until ``deadline`` (CLOCK_MONOTONIC; ``t_tick`` is the
@@ -258,9 +376,9 @@ class Daemon:
         it left the tick as slow as after a sleep, while dry runs up to the deadline brought a
         tick-sized Python workload from 119 to 8 us (median)."""
         if self._deferred is not None:
-            message, self._deferred = self._deferred, None
-            self._on_frame(message)
-        recv = self.bus.recv
+            (message, index), self._deferred = self._deferred, None
+            self._on_frame(message, index)
+        recv = self._recv
         late_frames = 0
         spin_from = deadline - self.spin
         # No dry run starts that would overrun the tick: the first in a window runs on cold
@@ -285,7 +403,7 @@ class Daemon:
             else:
                 timeout = 0.0
             try:
-                message = recv(timeout=timeout)
+                message, index = recv(timeout)
             except (self.can.CanOperationError, OSError) as exc:
                 self._bus_failed(exc)
                 continue
@@ -294,9 +412,9 @@ class Daemon:
                     # Received after the tick's time: it is the next tick's, as a replay of a
                     # bus log latches it, and draining a burst still arriving delayed ticks
                     # by up to a millisecond (measured).
-                    self._deferred = message
+                    self._deferred = (message, index)
                     return
-                self._on_frame(message)
+                self._on_frame(message, index)
             elif remaining <= 0.0:
                 if first_dry:
                     self._first_dry_cost *= 0.5
@@ -309,11 +427,21 @@ class Daemon:
                     self._first_dry_cost = dry_cost
                     first_dry = False
 
+    def _recv(self, timeout: float):
+        """(message, bus index) from whichever bus has a frame first, or (None, -1) after
+        ``timeout``. One bus: its recv. Several: select() on their sockets (SocketCAN,
+        slipd_unix), else polling them in turn with short sleeps (python-can's virtual bus)."""
+        buses = self.buses
+        if len(buses) == 1 or all(b is buses[0] for b in buses):
+            return buses[0].recv(timeout=timeout), 0
+        return _recv_any(buses, timeout)
+
     def _bus_failed(self, exc: Exception) -> None:
         if self.bus_down_since is None:
             self.bus_down_since = time.monotonic()
             self._next_reopen = self.bus_down_since + REOPEN_INTERVAL
-            event = f"bus {self.config.channel} failed: {exc}; outputs invalid until it is back"
+            names = ", ".join(self.channels.values())
+            event = f"bus {names} failed: {exc}; outputs invalid until it is back"
             self.bus_events.append(event)
             self.log(f"slipd: {event}")
             self.notifier.notify(f"STATUS={event}")
@@ -325,18 +453,22 @@ class Daemon:
         now = time.monotonic()
         if now >= self._next_reopen and self._owns_bus:
             self._next_reopen = now + REOPEN_INTERVAL
-            link = interface_is_up(self.config.channel) if self.config.interface == "socketcan" \
-                else True
+            link = all(interface_is_up(c) for c in self.channels.values()) \
+                if self.config.interface == "socketcan" else True
             if link:
+                for old in self.buses:
+                    try:
+                        old.shutdown()
+                    except Exception:  # noqa: BLE001 - the old socket may already be gone
+                        pass
                 try:
-                    self.bus.shutdown()
-                except Exception:  # noqa: BLE001 - the old socket may already be gone
-                    pass
-                try:
-                    self.bus = open_bus(self.config, self.plan_ids)
+                    self.buses = [open_bus(self.config, self.plan_ids[k], self.channels[name],
+                                           self.fd[k]) for k, name in enumerate(self.bus_names)]
+                    self.bus = self.buses[self.output_bus]
                     self._write_frame = frame_writer(self.bus)
                     down = now - self.bus_down_since
-                    event = f"bus {self.config.channel} reopened after {down:.1f} s"
+                    names = ", ".join(self.channels.values())
+                    event = f"bus {names} reopened after {down:.1f} s"
                     self.bus_events.append(event)
                     self.log(f"slipd: {event}")
                     self.bus_down_since = None
@@ -353,7 +485,9 @@ class Daemon:
         python-can Message."""
         payload = self._payloads[name]
         self.codec.encode_output(name, self.tx, payload)
-        if self.bus_down_since is None:
+        if self.listen_only:
+            pass  # estimate and record only: nothing goes on the bus
+        elif self.bus_down_since is None:
             try:
                 if self._write_frame is not None:
                     self._write_frame(self._frames[name])
@@ -371,7 +505,9 @@ class Daemon:
         else:
             self.stats.counters["tx_errors"] += 1
         if self.recorder is not None:
-            self.recorder.frame(t_record, self._frame_ids[name], False, payload, rx=False)
+            message = self._messages[name]
+            self.recorder.frame(t_record, self._frame_ids[name], message.is_extended_id, payload,
+                                rx=False, fd=message.is_fd, brs=message.bitrate_switch)
 
     def _estimate(self, t_wall: float, state: np.ndarray, u: np.ndarray, out: np.ndarray,
                   tx: np.ndarray, steps: int) -> None:
@@ -471,7 +607,10 @@ class Daemon:
         self.log(f"slipd: {self.restore_state()}")
         warm = self.warm_up()
         released = release_compiler_pages()
-        self.log(f"slipd: estimator {config.estimator} on {config.interface}:{config.channel}"
+        where = ", ".join(f"{name}={channel}{' (FD)' if fd else ''}" for (name, channel), fd
+                          in zip(self.channels.items(), self.fd, strict=True))
+        self.log(f"slipd: estimator {config.estimator} on {config.interface} {where}"
+                 f"{', listen-only: sending nothing' if self.listen_only else ''}"
                  f", numba warm-up {warm * 1e3:.0f} ms, {released / 2**20:.0f} MB of LLVM "
                  "code released from memory")
         previous_handlers = {}
@@ -534,7 +673,7 @@ class Daemon:
         finally:
             gc.callbacks.remove(self._on_gc)
             if self._deferred is not None:  # decoded and recorded like every received frame
-                self._on_frame(self._deferred)
+                self._on_frame(*self._deferred)
                 self._deferred = None
             self.save_state()
             for signum, handler in previous_handlers.items():
@@ -544,7 +683,8 @@ class Daemon:
             if self.recorder is not None:
                 self.recorder.close()
             if self._owns_bus:
-                self.bus.shutdown()
+                for bus in self.buses:
+                    bus.shutdown()
             for end in self._syscall_warmer or ():
                 end.close()
         return self.snapshot()

@@ -21,10 +21,14 @@ class FlightRecorder:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.file = open(self.path, "w", encoding="ascii", buffering=1 << 16)  # noqa: SIM115
 
-    def frame(self, t: float, frame_id: int, extended: bool, data, rx: bool) -> None:
+    def frame(self, t: float, frame_id: int, extended: bool, data, rx: bool,
+              channel: str | None = None, fd: bool = False, brs: bool = False) -> None:
+        """One line; ``channel``: the interface the frame was on (default: the recorder's),
+        ``fd``/``brs``: a CAN FD frame (``ID##F`` with the flags nibble, as candump writes)."""
         ident = f"{frame_id:08X}" if extended else f"{frame_id:03X}"
-        self.file.write(f"({t:.6f}) {self.channel} {ident}#{bytes(data).hex().upper()} "
-                        f"{'R' if rx else 'T'}\n")
+        separator = f"##{1 if brs else 0:X}" if fd else "#"
+        self.file.write(f"({t:.6f}) {channel or self.channel} {ident}{separator}"
+                        f"{bytes(data).hex().upper()} {'R' if rx else 'T'}\n")
 
     def maybe_rotate(self) -> None:
         if self.file.tell() < self.max_bytes:

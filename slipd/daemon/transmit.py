@@ -25,22 +25,35 @@ import numpy as np
 
 CAN_EFF_FLAG = 0x80000000
 CAN_FRAME_SIZE = 16  # struct can_frame: can_id, len, __pad, __res0, len8_dlc, data[8]
+CANFD_FRAME_SIZE = 72  # struct canfd_frame: can_id, len, flags, __res0, __res1, data[64]
+CANFD_BRS = 0x01  # bit rate switch: the data phase at the data bit rate
+CANFD_FDF = 0x04  # marks a canfd_frame as an FD frame (python-can sets it; older kernels ignore)
 PAYLOAD = slice(8, 16)
 QUEUE_FULL = (errno.ENOBUFS, errno.EAGAIN)
 _HEADER = struct.Struct("=IBB1xB")  # host byte order, as the kernel reads it; python-can's
 
 
-def frame_buffer(frame_id: int, extended: bool = False, length: int = 8) -> np.ndarray:
-    """A ``struct can_frame`` for ``frame_id`` with a zero payload of ``length`` bytes, laid
-    out as python-can's ``build_can_frame`` lays out a classic frame."""
-    if not 0 <= length <= 8:
-        raise ValueError(f"CAN frame length {length}: expected 0..8 bytes")
-    frame = np.zeros(CAN_FRAME_SIZE, dtype=np.uint8)
+def frame_buffer(frame_id: int, extended: bool = False, length: int = 8,
+                 fd: bool = False) -> np.ndarray:
+    """A ``struct can_frame`` (or, with ``fd``, a ``struct canfd_frame`` with the bit-rate
+    switch set) for ``frame_id`` with a zero payload of ``length`` bytes, laid out as
+    python-can's ``build_can_frame`` lays them out. :func:`payload` is its data view."""
+    if not 0 <= length <= (64 if fd else 8):
+        raise ValueError(f"CAN{' FD' if fd else ''} frame length {length}: expected "
+                         f"0..{64 if fd else 8} bytes")
+    frame = np.zeros(CANFD_FRAME_SIZE if fd else CAN_FRAME_SIZE, dtype=np.uint8)
     can_id = frame_id | (CAN_EFF_FLAG if extended else 0)
-    # len8_dlc repeats the length, as python-can's build_can_frame writes it (the kernel reads
-    # it only for 8-byte frames with a DLC of 9..15)
-    frame[:8] = np.frombuffer(_HEADER.pack(can_id, length, 0, length), dtype=np.uint8)
+    # classic: len8_dlc repeats the length, as python-can's build_can_frame writes it (the
+    # kernel reads it only for 8-byte frames with a DLC of 9..15); FD: the flags byte
+    third = CANFD_FDF | CANFD_BRS if fd else 0
+    fourth = 0 if fd else length
+    frame[:8] = np.frombuffer(_HEADER.pack(can_id, length, third, fourth), dtype=np.uint8)
     return frame
+
+
+def payload(frame: np.ndarray) -> np.ndarray:
+    """The data bytes of a :func:`frame_buffer` (a view the encode kernel writes into)."""
+    return frame[8:8 + int(frame[4])]
 
 
 def frame_writer(bus) -> Callable[[np.ndarray], object] | None:

@@ -104,11 +104,16 @@ def play(messages: list, bus, speed: float = 1.0, loop: bool = False,
 
 
 def parse_map(entries: list[str]) -> dict[str, str]:
+    """``--map WRITE=LOG`` entries, in canplayer's order (``canplayer vcan1=can0`` plays the
+    frames logged on can0 onto vcan1) -> {log channel: bus channel}."""
     mapping = {}
     for entry in entries:
-        source, sep, target = entry.partition("=")
+        target, sep, source = entry.partition("=")
         if not sep or not source or not target:
-            raise ConfigError(f"--map {entry!r}: expected FROM=TO, e.g. vcan0=can0")
+            raise ConfigError(f"--map {entry!r}: expected WRITE=LOG as canplayer takes it, "
+                              "e.g. vcan1=can0 plays the frames logged on can0 onto vcan1")
+        if source in mapping:
+            raise ConfigError(f"--map: log channel {source!r} mapped twice")
         mapping[source] = target
     return mapping
 
@@ -120,7 +125,8 @@ class BusRouter:
     mapped channel are played (the others are counted in ``unmapped``), each on its own bus.
     """
 
-    def __init__(self, interface: str, default_channel: str, mapping: dict[str, str]) -> None:
+    def __init__(self, interface: str, default_channel: str, mapping: dict[str, str],
+                 fd: bool = False, bus_kwargs: dict | None = None) -> None:
         import can
 
         self.mapping = mapping
@@ -129,7 +135,8 @@ class BusRouter:
         targets = sorted(set(mapping.values())) if mapping else [default_channel]
         try:
             for target in targets:
-                self.buses[target] = can.Bus(interface=interface, channel=target)
+                self.buses[target] = can.Bus(**(bus_kwargs or {}), interface=interface,
+                                             channel=target, **({"fd": True} if fd else {}))
         except (can.CanError, OSError, ValueError) as exc:
             self.shutdown()
             raise ConfigError(f"cannot open {interface} bus {target!r}: {exc}") from exc
@@ -154,13 +161,18 @@ def play_logs(args: argparse.Namespace) -> int:
     """``slipd replay LOG --realtime``: play each log in turn onto the bus(es)."""
     from slipd.replay.readers import read_frames
 
-    router = BusRouter(args.interface, args.channel, parse_map(args.map))
+    router = BusRouter(args.interface, args.channel, parse_map(args.map),
+                       fd=bool(getattr(args, "fd", False)))
     try:
         for log in args.logs:
             frames = read_frames(log, skip_bad=args.skip_bad)
             if frames.bad_lines:
                 print(f"{log}: skipped {frames.bad_lines} malformed line(s), first at line(s) "
                       f"{frames.bad_line_numbers[:10]}")
+            fd_frames = int(np.count_nonzero(frames.flags & FLAG_FD))
+            if fd_frames and not getattr(args, "fd", False):
+                raise ConfigError(f"{log}: {fd_frames} CAN FD frame(s); play them with --fd "
+                                  "on an FD-capable bus")
             errors = int(np.count_nonzero(frames.flags & FLAG_ERROR))
             if errors:
                 print(f"{log}: {errors} error frame(s) in the log are not played (a bus "
