@@ -172,27 +172,20 @@ def _recv_any(buses, timeout: float):
         fds = [bus.fileno() for bus in buses]
     except (AttributeError, NotImplementedError, OSError):
         fds = None
-    if fds is not None and all(isinstance(fd, int) and fd >= 0 for fd in fds):
-        while True:
-            for index, bus in enumerate(buses):  # frames already buffered by python-can
-                message = bus.recv(timeout=0.0)
-                if message is not None:
-                    return message, index
-            remaining = deadline - time.monotonic()
-            if remaining <= 0.0:
-                return None, -1
-            ready, _, _ = select.select(fds, [], [], remaining)
-            if not ready:
-                return None, -1
+    if fds is not None and not all(isinstance(fd, int) and fd >= 0 for fd in fds):
+        fds = None
     while True:
-        for index, bus in enumerate(buses):
+        for index, bus in enumerate(buses):  # frames python-can already holds first
             message = bus.recv(timeout=0.0)
             if message is not None:
                 return message, index
         remaining = deadline - time.monotonic()
         if remaining <= 0.0:
             return None, -1
-        time.sleep(min(remaining, 0.0002))
+        if fds is None:
+            time.sleep(min(remaining, 0.0002))
+        elif not select.select(fds, [], [], remaining)[0]:
+            return None, -1
 
 
 def interface_is_up(channel: str) -> bool | None:

@@ -136,7 +136,17 @@ def write_log(path: str | Path, result: SimResult, profile, epoch: float = START
     from slipd.replay.candump import write_candump
 
     t, frame_id, data, dlc = encode_frames(result, profile, epoch)
-    return write_candump(path, t, frame_id, data, dlc, interface="can0")
+    buses = profile.buses if not isinstance(profile, str) else ("main",)
+    if len(buses) == 1:
+        return write_candump(path, t, frame_id, data, dlc, interface="can0")
+    # a profile on several buses: each frame on the channel named after its bus
+    from slipd.codec import Codec
+
+    plan = Codec.from_profile(profile).inputs
+    bus_of = {plan.frame_id(n): plan.buses.index(plan.bus(n)) for n in plan.message_names}
+    channel = np.array([bus_of[int(i)] for i in frame_id], dtype=np.uint8)
+    return write_candump(path, t, frame_id, data, dlc, channel=channel,
+                         channels=list(plan.buses))
 
 
 def truth_path_of(log: str | Path) -> Path:
