@@ -239,3 +239,25 @@ def test_run_options_follow_python_can_conventions(tmp_path, monkeypatch):
     (tmp_path / "bad.toml").write_text("bitrate = \"fast\"\n")
     with pytest.raises(ConfigError, match="bitrate = 'fast'; expected int"):
         _settings(parser.parse_args(["run", "--config", str(tmp_path / "bad.toml")]))
+
+
+def test_a_simulated_drive_on_two_buses_replays_without_a_map(tmp_path):
+    """slipd sim writes a several-bus profile's frames on one channel per bus, named after
+    the bus, so replay needs no --bus; the recorded output IDs are the profile's."""
+    from slipd.commands.replay import replay_one
+    from slipd.sim import simulate
+    from slipd.sim.writer import write_log
+
+    path = two_bus_profile(tmp_path)
+    profile = load_profile(path)
+    log = tmp_path / "drive.log"
+    write_log(log, simulate("step_steer", profile=profile, seed=0, duration=3.0), profile)
+    frames = read_candump(log)
+    assert frames.channels == ["chassis", "pt"]
+    inputs = latch_log(frames, profile)
+    assert inputs.errors["IMU_RATE"]["accepted"] > 250
+    assert inputs.errors["WHEEL_SPEEDS"]["accepted"] > 250
+    merged = tmp_path / "merged.log"
+    replay_one(log, str(path), ["zero"], None, merged, False)
+    out = read_candump(merged)
+    assert np.isin(out.frame_id, [0x700, 0x701]).sum() == 2 * len(inputs.t)

@@ -91,7 +91,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
         lines.append(f"  estimates -> {out}")
     if candump is not None:
         channel = len(frames.channels)
-        out_frames = outputs.output_frames(estimates[0], channel)
+        out_frames = outputs.output_frames(estimates[0], channel, profile=profile)
         merged = outputs.merge(frames, out_frames)
         write_candump(candump, merged.t, merged.frame_id, merged.data, merged.dlc,
                       flags=merged.flags, channel=merged.channel,

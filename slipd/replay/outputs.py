@@ -12,7 +12,7 @@ from slipd.codec import N_TX, Codec, kernels
 from slipd.codec.tx import fill_tx_rows
 from slipd.errors import ConfigError, DependencyError
 from slipd.estimators import base
-from slipd.replay.candump import Frames
+from slipd.replay.candump import FLAG_BRS, FLAG_EXTENDED, FLAG_FD, Frames
 
 CSV_HEADER = (
     "# slipd estimates, one row per 10 ms tick. t: s on the log's time axis; beta, "
@@ -107,9 +107,11 @@ def tx_values(out: np.ndarray, estimator_id: int) -> np.ndarray:
     return values
 
 
-def output_frames(estimate, channel_index: int, first_counter: int = 0) -> Frames:
-    """SLIPD_STATE and SLIPD_AUX frames of every tick (what the daemon sends)."""
-    codec_plan = Codec.output_plan()
+def output_frames(estimate, channel_index: int, first_counter: int = 0,
+                  profile=None) -> Frames:
+    """SLIPD_STATE and SLIPD_AUX frames of every tick (what the daemon sends), on the
+    profile's output IDs and frame format (slipd.dbc's without a profile)."""
+    codec_plan = Codec.output_plan(profile)
     values = tx_values(estimate.out, base.available().index(estimate.method))
     n = len(estimate.t)
     parts = []
@@ -125,7 +127,9 @@ def output_frames(estimate, channel_index: int, first_counter: int = 0) -> Frame
     for k, (fid, rows) in enumerate(parts):
         frame_id[k::2] = fid
         data[k::2] = rows
-    return Frames(t, frame_id, np.full(2 * n, 128 | 64, np.uint8), np.full(2 * n, 8, np.uint8),
+    flags = 128 | 64 | (FLAG_FD | FLAG_BRS if codec_plan.is_fd("SLIPD_STATE") else 0)
+    flags |= FLAG_EXTENDED if codec_plan.is_extended("SLIPD_STATE") else 0
+    return Frames(t, frame_id, np.full(2 * n, flags, np.uint8), np.full(2 * n, 8, np.uint8),
                   data, np.full(2 * n, channel_index, np.uint8), [])
 
 
