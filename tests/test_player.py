@@ -127,7 +127,7 @@ def test_map_plays_each_logged_channel_on_its_bus(tmp_path):
 
 
 def test_bad_map_and_speed_are_clear_errors():
-    with pytest.raises(ConfigError, match="expected FROM=TO"):
+    with pytest.raises(ConfigError, match="expected WRITE=LOG as canplayer takes it"):
         parse_map(["vcan0"])
     with pytest.raises(ConfigError, match="expected a number > 0"):
         play([], None, speed=0.0)
