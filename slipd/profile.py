@@ -346,11 +346,15 @@ def _parse_channel(path: Path, name: str, spec: dict, vehicle: np.ndarray, messa
         raise ConfigError(f"{reader.where('signal')} = {signal_spec!r}; expected signal names")
     unit = reader.get("unit", str, None, what=f"one of {sorted(UNIT_TABLE)}")
     dimension = CHANNEL_DIMENSION[channel]
+    # a wheel's angular rate times its radius is a speed (Ford's wheel speeds are rad/s)
+    per_radius = spec.get("multiply_by") == "wheel_radius" and dimension == "speed"
     if unit is not None:
         if unit not in UNIT_TABLE:
             raise ConfigError(f"{reader.where('unit')} = {unit!r}; expected one of "
                               f"{sorted(UNIT_TABLE)}")
-        if UNIT_TABLE[unit][1] != dimension:
+        if per_radius and UNIT_TABLE[unit][1] == "angular rate":
+            pass
+        elif UNIT_TABLE[unit][1] != dimension:
             fitting = sorted(u for u, (_, d) in UNIT_TABLE.items() if d == dimension)
             raise ConfigError(f"{reader.where('unit')} = {unit!r} is a unit of "
                               f"{UNIT_TABLE[unit][1]}, but {name} is a {dimension}; expected "

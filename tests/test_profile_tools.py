@@ -11,7 +11,7 @@ from slipd.channels import In
 from slipd.cli import main
 from slipd.profile import PROFILE_DIR, load_profile
 
-SHIPPED = ["default", "toyota_prius", "vw_golf_mk7", "hyundai_ioniq_5"]
+SHIPPED = ["default", "toyota_prius", "vw_golf_mk7", "hyundai_ioniq_5", "ford_escape_mk4"]
 
 
 def _simulate(profile, path, scenario="handling_high_mu", duration=30.0):

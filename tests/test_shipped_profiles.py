@@ -136,7 +136,7 @@ def _drive(profile, tmp_path, tag):
     return run_log(log, profile, ["kinematic_heuristic"])["kinematic_heuristic"].out, log
 
 
-@pytest.mark.parametrize("name", ["vw_golf_mk7", "hyundai_ioniq_5"])
+@pytest.mark.parametrize("name", ["vw_golf_mk7", "hyundai_ioniq_5", "ford_escape_mk4"])
 def test_a_drive_on_the_cars_bus_estimates_as_on_slipd_dbc(tmp_path, name):
     reference = _on_slipd_dbc(load_profile(name))
     car = _same_rates(load_profile(name), reference.vehicle)
@@ -158,3 +158,34 @@ def test_a_drive_on_the_cars_bus_estimates_as_on_slipd_dbc(tmp_path, name):
         wrong = run_log(log, dataclasses.replace(car, channels=signless),
                         ["kinematic_heuristic"])["kinematic_heuristic"].out
         assert np.sqrt(np.nanmean(np.degrees(wrong[:, Out.BETA] - want[:, Out.BETA])**2)) > 0.5
+
+
+def test_ford_quality_factors_and_value_table_codes():
+    """Ford: a value counts only with its *_D_Qf at 3 ("OK"); the value table's "Faulty" and
+    "NoDataExists" raw codes invalidate it too; wheel speeds are rad/s x the rolling radius."""
+    profile = load_profile("ford_escape_mk4")
+    codec = Codec(profile)
+    db = load_dbc(profile.dbc_path)
+    yaw = db.get_message_by_name("Yaw_Data_FD1")
+    base = {s.name: 0 for s in yaw.signals}
+
+    def frame(counter, **values):
+        return yaw.encode({**base, "VehRollYaw_No_Cnt": counter, **values}, strict=False,
+                          scaling=False)
+
+    yaw_raw = round((0.2 + 6.5) / 0.0002)  # 0.2 rad/s
+    assert codec.decode(yaw.frame_id, frame(0, VehYaw_W_Actl=yaw_raw, VehYawWActl_D_Qf=3),
+                        0.0) >= 0
+    u = codec.sample(0.0, new_u())
+    assert u[VALID + In.YAW_RATE] == 1.0 and u[In.YAW_RATE] == pytest.approx(0.2, abs=1e-4)
+    for k, (raw, qf) in enumerate(((yaw_raw, 2), (65535, 3), (65534, 3)), start=1):
+        assert codec.decode(yaw.frame_id, frame(k, VehYaw_W_Actl=raw, VehYawWActl_D_Qf=qf),
+                            0.01 * k) >= 0
+        u = codec.sample(0.01 * k, new_u())
+        assert u[VALID + In.YAW_RATE] == 0.0, (raw, qf)
+    assert codec.error_counts()["Yaw_Data_FD1"]["not_available"] == 3
+    wheels = db.get_message_by_name("WheelSpeed")
+    payload = wheels.encode({s.name: 50.0 if s.name.startswith("Whl") else 0
+                             for s in wheels.signals}, strict=False)
+    assert codec.decode(wheels.frame_id, payload, 0.05) >= 0
+    assert codec.sample(0.05, new_u())[In.WHEEL_SPEED_RR] == pytest.approx(50.0 * 0.345)

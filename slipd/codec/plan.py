@@ -85,7 +85,7 @@ OUTPUT_MESSAGES = ("SLIPD_STATE", "SLIPD_AUX", "SLIPD_DIAG")
 #: Value-table names that mean "no valid value" (init, fault, signal not available, ...).
 NOT_AVAILABLE = re.compile(
     r"init|not[ _-]?avail|unavail|n/a|\bsna\b|invalid|ung(ue|ü)ltig|fehler|error|fault|"
-    r"undefined|signal[ _-]?not|no[ _-]?signal|ersatz", re.IGNORECASE)
+    r"undefined|signal[ _-]?not|no[ _-]?signal|no[ _-]?data|\bunknown\b|ersatz", re.IGNORECASE)
 #: CRC/checksum field per scheme: bits, and where it must sit ("last", "first", "any").
 CRC_FIELDS = {"slipd_crc8": (8, "any"), "autosar_crc8": (8, "any"),
               "toyota_checksum": (8, "last"), "honda_checksum": (4, "last"),
