@@ -380,7 +380,8 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
             continue
         raw = _raw(plan_i, row, data)
         physical = _physical_of_raw(plan_i, plan_f, row, raw)
-        if not _available(plan_i, row, raw, data):
+        if (plan_i[row, S_N_INVALID] > 0 or plan_i[row, S_VALID_ROW] >= 0) and not _available(
+                plan_i, row, raw, data):
             unavailable |= np.int64(1) << slot
             continue
         if plan_i[row, S_CHECK_RANGE] and plan_f[row, F_MIN] < plan_f[row, F_MAX]:
