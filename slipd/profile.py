@@ -88,6 +88,13 @@ def dbc_unit(unit: str | None) -> str | None:
     return DBC_UNIT_ALIASES.get((unit or "").strip().lower())
 
 
+#: Accelerometer frames an IMU message may declare (``frame`` in [messages.X]).
+ACCEL_FRAMES: dict[str, str] = {
+    "body": "specific force along the body axes, gravity included: ESC sensor clusters",
+    "level": "levelled, gravity-compensated accelerations: an INS's output",
+}
+ACCEL_CHANNELS = (In.AX, In.AY, In.AZ)
+
 #: E2E schemes the codec implements. Their ids are what the kernels switch on.
 E2E_SCHEMES: dict[str, int] = {
     "none": 0,
@@ -176,6 +183,7 @@ class MessageMap:
     max_counter_delta: int = 1
     frame_id: int = -1  # filled from the DBC by the codec
     bus: str = DEFAULT_BUS
+    frame: str | None = None  # accelerometer frame of an IMU message (ACCEL_FRAMES); None: body
 
 
 @dataclass(frozen=True)
@@ -216,6 +224,11 @@ class Profile:
         if self.outputs.bus not in names:
             names.append(self.outputs.bus)
         return tuple(names)
+
+    @property
+    def accel_frame(self) -> str:
+        """The accelerometers' frame (ACCEL_FRAMES): the ay message's ``frame``, else body."""
+        return self.messages[self.channels[In.AY].message].frame or "body"
 
     @property
     def required_channels(self) -> tuple[In, ...]:
@@ -424,6 +437,10 @@ def _parse_message(path: Path, name: str, spec: dict) -> MessageMap:
     data_ids = reader.get("data_ids", list, [], what="16 data-ID bytes, one per counter value")
     max_delta = reader.get("max_counter_delta", int, 1)
     bus = reader.name_of("bus", DEFAULT_BUS, what="a bus name, e.g. chassis")
+    frame = reader.get("frame", str, None, what=f"one of {list(ACCEL_FRAMES)}")
+    if frame is not None and frame not in ACCEL_FRAMES:
+        raise ConfigError(f"{reader.where('frame')} = {frame!r}; expected one of "
+                          f"{list(ACCEL_FRAMES)} ({'; '.join(ACCEL_FRAMES.values())})")
     if e2e in E2E_NEEDS_COUNTER and (crc_signal is None or counter_signal is None):
         raise ConfigError(
             f"{path}: [messages.{name}] e2e = {e2e!r} needs crc_signal and counter_signal"
@@ -446,7 +463,7 @@ def _parse_message(path: Path, name: str, spec: dict) -> MessageMap:
     reader.no_unknown()
     return MessageMap(
         name, e2e, rate_hz, timeout, (), crc_signal, counter_signal, tuple(data_ids), max_delta,
-        bus=bus,
+        bus=bus, frame=frame,
     )
 
 
@@ -539,7 +556,15 @@ def load_profile(name_or_path: str | Path = "default", edit=None,
         used = tuple(c for c, m in channels.items() if m.message == mname)
         if not used:
             raise ConfigError(f"{path}: [messages.{mname}] feeds no channel; remove it or map one")
+        if mmap.frame is not None and not set(used) & set(ACCEL_CHANNELS):
+            raise ConfigError(f"{path}: [messages.{mname}] frame = {mmap.frame!r}: the message "
+                              "carries no accelerometer channel (ax, ay, az)")
         messages[mname] = MessageMap(**{**mmap.__dict__, "channels": used})
+    frames = {messages[channels[c].message].frame or "body" for c in ACCEL_CHANNELS
+              if c in channels}
+    if len(frames) > 1:
+        raise ConfigError(f"{path}: the accelerometer channels' messages declare different "
+                          f"frames {sorted(frames)}; ax, ay and az must share one")
     outputs = _parse_outputs(path, top.get("outputs", dict, {}, what="an [outputs] table"))
     top.no_unknown()
     profile = Profile(path, name, dbc_path, vehicle, channels, messages, description,

@@ -144,3 +144,26 @@ def test_import_reads_the_shipped_toyota_dbc(tmp_path):
     assert main(["import", str(csv), "--profile", "toyota_prius", "--map",
                  "ax=ax:m/s^2,ay=ay:m/s^2,yaw=yaw_rate:deg/s", "--out", str(out)]) == 0
     assert out.read_text().count("\n") == 40
+
+
+def test_accelerometer_frame_is_declared_per_imu_message(tmp_path):
+    """frame = body|level on the message carrying the accelerometers (issue 17 item 1):
+    default body; anything else, or on a message without accelerometers, is a load error."""
+    from slipd.profile import PROFILE_DIR
+
+    text = (PROFILE_DIR / "default.toml").read_text()
+    assert load_profile("default").accel_frame == "body"
+
+    def variant(old: str, new: str) -> Path:
+        path = tmp_path / "p.toml"
+        path.write_text(text.replace(old, new).replace('dbc = "slipd.dbc"',
+                                                       f'dbc = "{PROFILE_DIR / "slipd.dbc"}"'))
+        return path
+
+    assert load_profile(variant('frame = "body"', 'frame = "level"')).accel_frame == "level"
+    assert load_profile(variant('frame = "body"\n', '')).accel_frame == "body"
+    with pytest.raises(ConfigError, match="frame = 'tilted'; expected one of"):
+        load_profile(variant('frame = "body"', 'frame = "tilted"'))
+    with pytest.raises(ConfigError, match=r"IMU_RATE\] frame = 'level': the message carries no"):
+        load_profile(variant('counter_signal = "IMU_RATE_Counter"',
+                             'counter_signal = "IMU_RATE_Counter"\nframe = "level"'))
