@@ -61,6 +61,9 @@ def _version() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from slipd.numba_cache import use_keyed_cache
+
+    use_keyed_cache()  # before any kernel module is imported (the daemon's too)
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):

@@ -170,6 +170,15 @@ class _ErrorStats:
         centre = _HIST_LOW_DEG * _HIST_RATIO ** (k - 1) * math.sqrt(_HIST_RATIO)
         return min(centre, self.max)
 
+    def cdf(self) -> tuple[np.ndarray, np.ndarray]:
+        """(|error| in deg, share of samples at or below it) at each occupied bin's upper
+        edge (clamped to the largest error): the CDF to the histogram's 0.1 %."""
+        occupied = np.flatnonzero(self.hist)
+        if not self.n:
+            return np.zeros(0), np.zeros(0)
+        upper = np.minimum(_HIST_LOW_DEG * _HIST_RATIO ** occupied.astype(np.float64), self.max)
+        return upper, np.cumsum(self.hist)[occupied] / self.n
+
 
 class Accumulator:
     """The :class:`Scores` of one estimator accumulated over logs (or pieces of a log) in
@@ -213,6 +222,10 @@ class Accumulator:
     def add(self, part: Errors) -> Accumulator:
         return self.add_arrays(part.beta_err, part.vx_err, part.valid, part.sigma_beta,
                                part.window)
+
+    def cdf(self, valid_only: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The pooled CDF of |beta error| (deg) over the scored (or only the VALID) ticks."""
+        return (self.valid if valid_only else self.all).cdf()
 
     def merge(self, other: Accumulator) -> Accumulator:
         """Add another accumulator's ticks (e.g. pool the mismatch cases)."""
