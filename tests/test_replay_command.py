@@ -52,7 +52,7 @@ def test_csv_and_parquet_tables_hold_the_same_estimates(drive, tmp_path):
 
 def test_unknown_table_format_and_estimator_are_clear_errors(drive, tmp_path, capsys):
     assert main(["replay", str(drive / "a.log"), "--out", str(tmp_path / "est.xlsx")]) == 2
-    assert "unknown table format '.xlsx'" in capsys.readouterr().err
+    assert "unknown format '.xlsx'" in capsys.readouterr().err
     assert main(["replay", str(drive / "a.log"), "--estimator", "zero,nope"]) == 2
     assert "unknown estimator 'nope'" in capsys.readouterr().err
 
@@ -73,5 +73,6 @@ def test_several_logs_run_in_parallel_into_a_directory(drive, tmp_path, capsys):
     out = tmp_path / "tables"
     assert main(["replay", str(drive / "a.log"), str(drive / "b.log"), "--estimator", "zero",
                  "--out", str(out), "--jobs", "2"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["a.csv", "b.csv"]
+    assert sorted(p.name for p in out.iterdir()) == ["a.csv", "a.csv.meta.json", "b.csv",
+                                                     "b.csv.meta.json"]
     assert capsys.readouterr().out.count("estimates ->") == 2

@@ -12,7 +12,9 @@ from pathlib import Path
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("source", type=Path, metavar="FILE",
-                        help="data-logger export: .csv (header row) or .mat (MATLAB v5/v7)")
+                        help="data-logger export: .csv (header row), .mat (MATLAB v5/v7) or a "
+                             "signal-level .mf4 (its time column is t: s from the measurement "
+                             "start)")
     parser.add_argument("--profile", default="default",
                         help="vehicle profile whose bus layout to write (default: default)")
     parser.add_argument("--map", action="append", default=[], required=True,
@@ -37,9 +39,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="reference-sensor columns to write as the log's truth CSV "
                              "(LOG.truth.csv, what slipd eval reads): beta and vx at least, "
                              "also vy, speed, yaw_rate, ...")
+    parser.add_argument("--raster", type=float, metavar="S",
+                        help="MF4 only: resample every channel onto an S-second grid by sample-"
+                             "and-hold (default: the union of the channels' time stamps, each "
+                             "channel only at its own samples); recorded in the sidecar")
     parser.add_argument("--interface", default="can0", help="interface name in the log")
     parser.add_argument("--out", type=Path, required=True, metavar="LOG",
                         help="candump -L log to write (LOG.meta.json is written beside it)")
+
+
+def _raster(value: float | None) -> float | None:
+    import math
+
+    from slipd.errors import ConfigError
+
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"--raster {value}: expected a positive number of seconds")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         args.source, load_profile(args.profile), parse_map(args.map), args.out,
         time_spec=args.time, epoch=args.epoch, constants=parse_constants(args.constant),
         derive=args.derive, speed_spec=args.speed, interface=args.interface,
-        truth=parse_truth(args.truth),
+        truth=parse_truth(args.truth), raster=_raster(args.raster),
     )
     print(f"{args.source} -> {args.out}: {report.summary()}")
     print(f"provenance: {sidecar_path(args.out)}")

@@ -16,10 +16,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="method name, comma-separated names, or 'all' "
                              "(default: kinematic_heuristic)")
     parser.add_argument("--out", type=Path,
-                        help="write per-tick estimates to FILE.csv or FILE.parquet (with "
-                             "several logs, a directory of one file per log, see --format)")
-    parser.add_argument("--format", choices=("csv", "parquet"), default="csv",
-                        help="table format of the per-log files when --out is a directory")
+                        help="write per-tick estimates to FILE.csv (+ FILE.csv.meta.json), "
+                             "FILE.parquet, FILE.mcap (inputs, estimates and truth as topics, "
+                             "for Foxglove) or FILE.mf4 (with several logs, a directory of one "
+                             "file per log, see --format)")
+    parser.add_argument("--format", choices=("csv", "parquet", "mcap", "mf4"), default="csv",
+                        help="format of the per-log files when --out is a directory")
+    parser.add_argument("--truth", type=Path, metavar="TRUTH.csv",
+                        help="truth CSV to add to an MCAP or MF4 --out (default: the log's "
+                             "LOG.truth.csv when it exists)")
     parser.add_argument("--candump", type=Path, metavar="OUT.log",
                         help="write the input merged with slipd's output frames")
     parser.add_argument("--skip-bad", action="store_true",
@@ -55,7 +60,8 @@ def _methods(name: str) -> list[str]:
 
 
 def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | None,
-               candump: Path | None, skip_bad: bool, bus_map: dict | None = None) -> str:
+               candump: Path | None, skip_bad: bool, bus_map: dict | None = None,
+               truth: Path | None = None) -> str:
     """Replay one log; returns the summary text."""
     import time
 
@@ -87,8 +93,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
         valid = (estimate.out[:, 8].astype(int) & 1).mean() if len(estimate.t) else 0.0
         lines.append(f"  {estimate.method}: {valid * 100:.1f} % of ticks valid")
     if out is not None:
-        outputs.write_table(out, estimates)
-        lines.append(f"  estimates -> {out}")
+        lines.append(_write_out(out, log, profile, methods, frames, inputs, estimates, truth))
     if candump is not None:
         channel = len(frames.channels)
         out_frames = outputs.output_frames(estimates[0], channel, profile=profile)
@@ -100,6 +105,33 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     return "\n".join(lines)
 
 
+def _write_out(out: Path, log: Path, profile, methods: list[str], frames, inputs, estimates,
+               truth: Path | None) -> str:
+    """The --out file; an MCAP or MF4 also gets the inputs and the truth: ``truth``, else the
+    log's LOG.truth.csv when it exists."""
+    from slipd.errors import ConfigError
+    from slipd.replay import writers
+    from slipd.sim.writer import read_truth_csv, truth_path_of
+
+    rich = out.suffix.lower() in (".mcap", ".mf4")
+    if truth is not None and not truth.exists():
+        raise ConfigError(f"--truth {truth}: no such file")
+    if truth is None and rich and truth_path_of(log).exists():
+        truth = truth_path_of(log)
+    columns = None
+    if rich and truth is not None:
+        data, epoch = read_truth_csv(truth)
+        columns = {**data, "t": data["t"] + epoch}
+    starts = ([float(frames.t[0])] if len(frames) else []) + (
+        [float(columns["t"][0])] if columns else [])
+    info = writers.RunInfo(methods, profile.name, str(log),
+                           sorted(profile.channels, key=int) if rich else [],
+                           min(starts) if starts else None, str(truth) if columns else "")
+    writers.write_estimates(out, estimates, info, inputs if rich else None, columns)
+    added = f" (+ inputs, truth {truth})" if columns else " (+ inputs)" if rich else ""
+    return f"  estimates -> {out}{added}"
+
+
 def run(args: argparse.Namespace) -> int:
     from slipd.commands.run import parse_bus_map
     from slipd.errors import ConfigError
@@ -109,8 +141,8 @@ def run(args: argparse.Namespace) -> int:
 
         return play_logs(args)
     methods = _methods(args.estimator)
-    if len(args.logs) > 1 and args.candump:
-        raise ConfigError("--candump takes one log at a time")
+    if len(args.logs) > 1 and (args.candump or args.truth):
+        raise ConfigError("--candump and --truth take one log at a time")
     targets = []
     for log in args.logs:
         out = args.out
@@ -118,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
             out.mkdir(parents=True, exist_ok=True)
             out = out / (log.name.split(".")[0] + f".{args.format}")
         targets.append((log, args.profile, methods, out, args.candump, args.skip_bad,
-                        parse_bus_map(args.bus) or None))
+                        parse_bus_map(args.bus) or None, args.truth))
     if len(targets) == 1:
         print(replay_one(*targets[0]))
         return 0

@@ -157,16 +157,26 @@ def parse_truth(entries: list[str]) -> list[TruthMap]:
 # ---- reading tables
 
 
-def read_table(path: Path) -> dict[str, np.ndarray]:
-    """Columns of a CSV (header row; ',', ';' or tab) or a .mat file as float64 arrays."""
+def read_table(path: Path, columns: set[str] | None = None,
+               raster: float | None = None) -> dict[str, np.ndarray]:
+    """Columns of a CSV (header row; ',', ';' or tab), a .mat file or a signal-level .mf4 as
+    float64 arrays (an MF4: only ``columns``, on their time stamps' union or on ``raster``;
+    slipd.replay.mf4.read_mf4_signals)."""
     if not path.exists():
         raise LogFormatError(f"{path}: no such file")
     suffix = path.suffix.lower()
+    if suffix == ".mf4":
+        from slipd.replay.mf4 import read_mf4_signals
+
+        return read_mf4_signals(path, columns, raster)
+    if raster is not None:
+        raise ConfigError(f"--raster: {path} is a table already; it resamples MF4 channels")
     if suffix == ".mat":
         return _read_mat(path)
     if suffix in (".csv", ".txt", ".tsv"):
         return _read_csv(path)
-    raise LogFormatError(f"{path}: unknown table format {suffix!r}; expected .csv or .mat")
+    raise LogFormatError(f"{path}: unknown table format {suffix!r}; expected .csv, .mat or "
+                         ".mf4")
 
 
 def _read_csv(path: Path) -> dict[str, np.ndarray]:
@@ -344,13 +354,16 @@ def import_table(source: Path, profile: Profile, maps: list[ColumnMap], out: Pat
                  time_spec: str | None = None, epoch: float = 0.0,
                  constants: dict[In, float] | None = None, derive: list[str] | None = None,
                  speed_spec: str | None = None, interface: str = "can0",
-                 truth: list[TruthMap] | None = None) -> ImportReport:
+                 truth: list[TruthMap] | None = None, raster: float | None = None
+                 ) -> ImportReport:
     """Encode the mapped columns of ``source`` into the candump log ``out`` (+ sidecar), and
     the ``truth`` columns into the truth CSV beside it (:func:`truth_path`)."""
     from slipd.codec import Codec
     from slipd.replay.candump import write_candump
 
-    table = read_table(source)
+    wanted = {m.column for m in maps} | {m.column for m in truth or []}
+    wanted |= {spec.partition(":")[0] for spec in (time_spec, speed_spec) if spec}
+    table = read_table(source, wanted, raster)
     t = _time_column(table, time_spec, source) + epoch
     n = len(t)
     constants = dict(constants or {})
@@ -433,7 +446,7 @@ def import_table(source: Path, profile: Profile, maps: list[ColumnMap], out: Pat
                                   interface=interface)
     if truth:
         _write_truth(out, source, table, t - epoch, epoch, truth, report)
-    _write_sidecar(out, source, profile, maps, time_spec, epoch, report, truth or [])
+    _write_sidecar(out, source, profile, maps, time_spec, epoch, report, truth or [], raster)
     return report
 
 
@@ -500,7 +513,7 @@ def _count_clamped(db, profile: Profile, message: str, values: dict[In, np.ndarr
 
 def _write_sidecar(out: Path, source: Path, profile: Profile, maps: list[ColumnMap],
                    time_spec: str | None, epoch: float, report: ImportReport,
-                   truth: list[TruthMap]) -> None:
+                   truth: list[TruthMap], raster: float | None = None) -> None:
     from slipd.cli import _version
 
     digest = hashlib.sha256(source.read_bytes()).hexdigest()
@@ -514,6 +527,8 @@ def _write_sidecar(out: Path, source: Path, profile: Profile, maps: list[ColumnM
         "map": [m.spec() for m in maps],
         "truth": [m.spec() for m in truth],
         "truth_file": report.truth_path or None,
+        "raster": (f"{raster} s: each MF4 channel's newest sample at or before each instant"
+                   if raster else None),
         "derived_on_request": report.derived,
         "messages": report.messages,
         "left_out": report.left_out,

@@ -31,6 +31,10 @@ def read_frames(path: str | Path, skip_bad: bool = False) -> Frames:
     base_suffix = suffixes.removesuffix(".gz")
     if base_suffix in CANDUMP_SUFFIXES or base_suffix == "":
         return read_candump(path, skip_bad=skip_bad)
+    if suffixes == ".mf4":  # bus-logging MF4 as whole arrays (slipd.replay.mf4)
+        from slipd.replay.mf4 import read_mf4
+
+        return read_mf4(path)
     if base_suffix in LIBRARY_SUFFIXES:
         return _read_with_python_can(path)
     raise LogFormatError(f"{path}: unknown log format {suffixes!r}; expected "

@@ -1,0 +1,407 @@
+"""Per-tick estimate files by suffix: CSV (+ JSON sidecar), Parquet, MCAP and MF4.
+
+Every writer is fed in chunks (:meth:`EstimateWriter.write` takes any run of one method's
+ticks, :meth:`~EstimateWriter.write_inputs` any run of the latched inputs), so a streaming
+replay can hand them a minute of ticks at a time; :func:`write_estimates` writes a whole run.
+
+* ``.csv``: plain (one header row, ``pandas.read_csv`` with defaults reads it), the table of
+  :data:`TABLE_COLUMNS` in degrees as ``slipd replay`` always wrote; what it is (units, status
+  bits, source, profile) goes to ``FILE.csv.meta.json``.
+* ``.parquet``: the same table (zstd), each field's unit in its field metadata and the run's
+  description in the schema metadata (``b"slipd"``, JSON).
+* ``.mcap`` (Foxglove, ``mcap`` package): JSON messages with a JSON schema (units in each
+  property's description): ``/slipd/inputs`` (the latched input channels and their validity
+  per tick), ``/slipd/estimate/<method>`` (the Python API's SI columns) and ``/slipd/truth``
+  when a truth is given; log time = the tick time in ns.
+* ``.mf4`` (ASAM MDF 4.1, asammdf): a channel group per method (``<method>.beta``, ... SI, with
+  units), ``inputs.<channel>`` and ``truth.<column>``; times from the header's start time.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slipd.channels import IN_UNITS, N_IN, OUT_UNITS, VALID, In, Out, Status
+from slipd.errors import ConfigError, DependencyError
+
+DEG = 180.0 / math.pi
+#: The replay table (CSV, Parquet): name -> (Out column or None, scale from SI, unit).
+TABLE_COLUMNS: dict[str, tuple[Out | None, float, str]] = {
+    "t": (None, 1.0, "s"),
+    "estimator": (None, 1.0, ""),
+    "beta_deg": (Out.BETA, DEG, "deg"),
+    "beta_rate_deg_s": (Out.BETA_RATE, DEG, "deg/s"),
+    "vx_mps": (Out.VX, 1.0, "m/s"),
+    "vy_mps": (Out.VY, 1.0, "m/s"),
+    "mu": (Out.MU, 1.0, "1"),
+    "sigma_beta_deg": (Out.SIGMA_BETA, DEG, "deg"),
+    "roll_deg": (Out.ROLL, DEG, "deg"),
+    "friction_class": (Out.FRICTION_CLASS, 1.0, "1"),
+    "status": (Out.STATUS, 1.0, "bits"),
+}
+DESCRIPTIONS = {
+    "t": "tick time on the log's time axis",
+    "estimator": "method name (slipd --estimator)",
+    "beta": "sideslip angle at the CoG, atan2(vy, vx), ISO 8855 (+ left)",
+    "beta_rate": "rate of beta",
+    "vx": "longitudinal velocity at the CoG",
+    "vy": "lateral velocity at the CoG (+ left)",
+    "mu": "estimated road friction; empty/NaN where the method does not estimate it",
+    "sigma_beta": "the method's 1-sigma of beta",
+    "roll": "body roll angle (+ right side down)",
+    "friction_class": "0 unknown, 1 low (ice/snow), 2 medium (wet), 3 high (dry)",
+    "status": "bit field: " + ", ".join(f"{s.value} {s.name}" for s in Status),
+    "valid": "the VALID bit: what a controller may trust",
+}
+#: SI estimate columns (the Python API's, MCAP, MF4): name -> Out column.
+SI_COLUMNS = {"beta": Out.BETA, "beta_rate": Out.BETA_RATE, "vx": Out.VX, "vy": Out.VY,
+              "mu": Out.MU, "sigma_beta": Out.SIGMA_BETA, "roll": Out.ROLL,
+              "friction_class": Out.FRICTION_CLASS, "status": Out.STATUS}
+
+
+def _describe(name: str) -> str:
+    base = name.removesuffix("_deg_s").removesuffix("_deg").removesuffix("_mps")
+    return DESCRIPTIONS.get(base, "")
+
+
+@dataclass
+class RunInfo:
+    """What a file records about its run (sidecar, schema metadata, MCAP metadata)."""
+
+    methods: list[str]
+    profile: str = ""
+    source: str = ""
+    #: input channels the inputs topic/group carries (default: none written)
+    channels: list[In] = field(default_factory=list)
+    #: the run's first instant on the log's time axis (MF4's header start time)
+    start: float | None = None
+    truth_source: str = ""
+
+    def as_dict(self) -> dict:
+        from slipd.cli import _version
+
+        return {"created_by": _version(), "source": self.source, "profile": self.profile,
+                "estimators": self.methods, "tick_s": 0.01, "truth": self.truth_source or None}
+
+
+class EstimateWriter:
+    """Base of the writers: ``write`` a method's chunk, ``write_inputs`` a chunk of latched
+    inputs (t [n], U [n, U_LEN]), ``write_truth`` the truth columns (``t`` on the log's time
+    axis plus SI columns), then ``close``. A context manager."""
+
+    def __init__(self, path: Path, info: RunInfo):
+        self.path = Path(path)
+        self.info = info
+
+    def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def write_inputs(self, t: np.ndarray, U: np.ndarray) -> None:
+        """Table formats hold estimates only."""
+
+    def write_truth(self, columns: dict[str, np.ndarray]) -> None:
+        """Table formats hold estimates only."""
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> EstimateWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _table_values(t: np.ndarray, out: np.ndarray) -> dict[str, np.ndarray]:
+    columns = {"t": t}
+    for name, (column, scale, _) in TABLE_COLUMNS.items():
+        if column is not None:
+            columns[name] = out[:, column] * scale
+    columns["friction_class"] = np.nan_to_num(out[:, Out.FRICTION_CLASS]).astype(np.int8)
+    columns["status"] = np.nan_to_num(out[:, Out.STATUS]).astype(np.int16)
+    return columns
+
+
+def _open(path: Path, mode: str):
+    try:
+        return open(path, mode, **({} if "b" in mode else {"encoding": "utf-8"}))
+    except OSError as exc:
+        raise ConfigError(f"--out {path}: cannot write: {exc.strerror or exc}") from exc
+
+
+class CsvWriter(EstimateWriter):
+    """Plain CSV, one header row; FILE.csv.meta.json describes it."""
+
+    def __init__(self, path: Path, info: RunInfo):
+        super().__init__(path, info)
+        self._handle = _open(self.path, "w")
+        self._handle.write(",".join(TABLE_COLUMNS) + "\n")
+        meta = {**info.as_dict(), "format": "slipd estimates, one row per 10 ms tick and method",
+                "columns": {n: {"unit": u, "description": _describe(n)}
+                            for n, (_, _, u) in TABLE_COLUMNS.items()}}
+        sidecar_of(self.path).write_text(json.dumps(meta, indent=2) + "\n")
+
+    def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
+        c = _table_values(t, out)
+        handle = self._handle
+        for k in range(len(t)):
+            mu = c["mu"][k]
+            mu_text = "" if math.isnan(mu) else f"{mu:.4f}"
+            handle.write(
+                f"{c['t'][k]:.6f},{method},{c['beta_deg'][k]:.5f},{c['beta_rate_deg_s'][k]:.4f},"
+                f"{c['vx_mps'][k]:.4f},{c['vy_mps'][k]:.4f},{mu_text},"
+                f"{c['sigma_beta_deg'][k]:.5f},{c['roll_deg'][k]:.4f},"
+                f"{int(c['friction_class'][k])},{int(c['status'][k])}\n")
+
+    def close(self) -> None:
+        self._handle.close()
+
+
+def sidecar_of(path: Path) -> Path:
+    """The JSON description beside a CSV table: FILE.csv.meta.json."""
+    return Path(path).with_name(Path(path).name + ".meta.json")
+
+
+class ParquetWriter(EstimateWriter):
+    """Parquet (zstd) by row groups: units in the field metadata, the run in the schema's."""
+
+    def __init__(self, path: Path, info: RunInfo):
+        super().__init__(path, info)
+        try:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+        except ImportError as exc:
+            raise DependencyError("--out FILE.parquet needs pyarrow: pip install "
+                                  "'slipd[parquet]'") from exc
+        self._pa = pa
+        types = {"t": pa.float64(), "estimator": pa.dictionary(pa.int32(), pa.string()),
+                 "friction_class": pa.int8(), "status": pa.int16()}
+        fields = [pa.field(name, types.get(name, pa.float64()),
+                           metadata={"unit": unit, "description": _describe(name)})
+                  for name, (_, _, unit) in TABLE_COLUMNS.items()]
+        self.schema = pa.schema(fields, metadata={"slipd": json.dumps(info.as_dict())})
+        self._dictionary = pa.array(list(info.methods), type=pa.string())
+        try:
+            self._writer = pq.ParquetWriter(str(self.path), self.schema, compression="zstd")
+        except OSError as exc:
+            raise ConfigError(f"--out {path}: cannot write: {exc}") from exc
+
+    def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
+        pa = self._pa
+        columns = _table_values(t, out)
+        index = self.info.methods.index(method)
+        arrays = []
+        for f in self.schema:
+            if f.name == "estimator":
+                arrays.append(pa.DictionaryArray.from_arrays(
+                    pa.array(np.full(len(t), index, dtype=np.int32)), self._dictionary))
+            else:
+                arrays.append(pa.array(columns[f.name], type=f.type, from_pandas=f.name == "mu"))
+        self._writer.write_table(pa.Table.from_arrays(arrays, schema=self.schema))
+
+    def close(self) -> None:
+        self._writer.close()
+
+
+def _json_schema(title: str, properties: dict[str, tuple[str, str, str]]) -> bytes:
+    """JSON Schema of a flat object: name -> (JSON type, unit, description)."""
+    props = {name: {"type": kind, "description": f"[{unit}] {text}".strip() if unit else text}
+             for name, (kind, unit, text) in properties.items()}
+    return json.dumps({"title": title, "type": "object", "properties": props}).encode()
+
+
+class McapWriter(EstimateWriter):
+    """MCAP with JSON messages and JSON schemas (Foxglove reads them as they are)."""
+
+    INPUTS, TRUTH, ESTIMATE = "/slipd/inputs", "/slipd/truth", "/slipd/estimate/"
+
+    def __init__(self, path: Path, info: RunInfo):
+        super().__init__(path, info)
+        try:
+            from mcap.writer import Writer
+        except ImportError as exc:
+            raise DependencyError("--out FILE.mcap needs mcap: pip install 'slipd[mcap]'"
+                                  ) from exc
+        self._handle = _open(self.path, "wb")
+        self._writer = Writer(self._handle)
+        self._writer.start(profile="", library="slipd")
+        self._writer.add_metadata("slipd", {k: json.dumps(v) if not isinstance(v, str) else v
+                                            for k, v in info.as_dict().items()})
+        props = {"t": ("number", "s", DESCRIPTIONS["t"])}
+        for name, column in SI_COLUMNS.items():
+            kind = "integer" if name in ("friction_class", "status") else "number"
+            props[name] = (kind, OUT_UNITS[column], DESCRIPTIONS[name])
+        props["mu"] = (["number", "null"], "1", DESCRIPTIONS["mu"])
+        props["valid"] = ("boolean", "", DESCRIPTIONS["valid"])
+        schema = self._writer.register_schema("slipd.Estimate", "jsonschema",
+                                              _json_schema("slipd.Estimate", props))
+        self._channels = {m: self._writer.register_channel(self.ESTIMATE + m, "json", schema)
+                          for m in info.methods}
+        self._sequence: dict[int, int] = {}
+        self._inputs = None
+        if info.channels:
+            names = [c.name.lower() for c in info.channels]
+            props = {"t": ("number", "s", DESCRIPTIONS["t"])}
+            props.update({n: ("number", IN_UNITS[c], "latched input channel, ISO 8855")
+                          for n, c in zip(names, info.channels, strict=True)})
+            props.update({f"{n}_valid": ("boolean", "", f"{n} fresh and E2E-checked")
+                          for n in names})
+            schema = self._writer.register_schema("slipd.Inputs", "jsonschema",
+                                                  _json_schema("slipd.Inputs", props))
+            self._inputs = self._writer.register_channel(self.INPUTS, "json", schema)
+
+    def _add(self, channel: int, t: float, payload: dict) -> None:
+        seq = self._sequence.get(channel, 0)
+        self._sequence[channel] = seq + 1
+        stamp = int(round(t * 1e9))
+        self._writer.add_message(channel, stamp, json.dumps(payload).encode(), stamp, seq)
+
+    def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
+        channel = self._channels[method]
+        status = np.nan_to_num(out[:, Out.STATUS]).astype(np.int64)
+        for k in range(len(t)):
+            row = {"t": float(t[k])}
+            for name, column in SI_COLUMNS.items():
+                value = float(out[k, column])
+                row[name] = None if math.isnan(value) else value
+            row["friction_class"] = int(np.nan_to_num(out[k, Out.FRICTION_CLASS]))
+            row["status"] = int(status[k])
+            row["valid"] = bool(status[k] & int(Status.VALID))
+            self._add(channel, float(t[k]), row)
+
+    def write_inputs(self, t: np.ndarray, U: np.ndarray) -> None:
+        if self._inputs is None:
+            return
+        names = [(c.name.lower(), int(c)) for c in self.info.channels]
+        for k in range(len(t)):
+            row = {"t": float(t[k])}
+            row.update({n: float(U[k, c]) for n, c in names})
+            row.update({f"{n}_valid": bool(U[k, VALID + c] > 0.5) for n, c in names})
+            self._add(self._inputs, float(t[k]), row)
+
+    def write_truth(self, columns: dict[str, np.ndarray]) -> None:
+        from slipd.sim.sensors import TRUTH_UNITS
+
+        props = {n: ("number", TRUTH_UNITS.get(n, ""), "reference (truth), SI, ISO 8855")
+                 for n in columns}
+        schema = self._writer.register_schema("slipd.Truth", "jsonschema",
+                                              _json_schema("slipd.Truth", props))
+        channel = self._writer.register_channel(self.TRUTH, "json", schema)
+        t = columns["t"]
+        names = list(columns)
+        for k in range(len(t)):
+            self._add(channel, float(t[k]), {n: float(columns[n][k]) for n in names})
+
+    def close(self) -> None:
+        self._writer.finish()
+        self._handle.close()
+
+
+class Mf4Writer(EstimateWriter):
+    """ASAM MDF 4.10 through asammdf: one channel group per method, inputs and truth."""
+
+    def __init__(self, path: Path, info: RunInfo):
+        super().__init__(path, info)
+        try:
+            from asammdf import MDF, Signal
+        except ImportError as exc:
+            raise DependencyError("--out FILE.mf4 needs asammdf: pip install 'slipd[mf4]'"
+                                  ) from exc
+        self._signal = Signal
+        self._mdf = MDF(version="4.10")
+        self._groups: dict[str, int] = {}
+        self._start = info.start
+
+    def _origin(self, t: np.ndarray) -> float:
+        if self._start is None:
+            self._start = float(t[0]) if len(t) else 0.0
+        if not self._groups:
+            from datetime import UTC, datetime
+
+            self._mdf.header.start_time = datetime.fromtimestamp(self._start, UTC)
+        return self._start
+
+    def _put(self, group: str, t: np.ndarray, signals: list[tuple[str, np.ndarray, str, str]],
+             comment: str) -> None:
+        if not len(t):
+            return
+        stamps = np.asarray(t, dtype=np.float64) - self._origin(t)
+        if group not in self._groups:
+            index = len(self._groups)
+            self._mdf.append([self._signal(samples=values, timestamps=stamps, name=name,
+                                           unit=unit, comment=text)
+                              for name, values, unit, text in signals],
+                             acq_name=group, comment=comment, common_timebase=True)
+            self._groups[group] = index
+        else:
+            self._mdf.extend(self._groups[group],
+                             [(stamps, None)] + [(values, None) for _, values, _, _ in signals])
+
+    def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
+        signals = []
+        for name, column in SI_COLUMNS.items():
+            values = out[:, column].astype(np.float64)
+            if name in ("friction_class", "status"):
+                values = np.nan_to_num(values).astype(np.int16 if name == "status" else np.int8)
+            signals.append((f"{method}.{name}", values, OUT_UNITS[column], DESCRIPTIONS[name]))
+        valid = (np.nan_to_num(out[:, Out.STATUS]).astype(np.int64) & int(Status.VALID)) != 0
+        signals.append((f"{method}.valid", valid.astype(np.uint8), "", DESCRIPTIONS["valid"]))
+        self._put(method, t, signals, f"slipd estimates of {method}, SI, ISO 8855")
+
+    def write_inputs(self, t: np.ndarray, U: np.ndarray) -> None:
+        signals = []
+        for c in self.info.channels:
+            name = c.name.lower()
+            signals.append((f"inputs.{name}", U[:, c].astype(np.float64), IN_UNITS[c],
+                            "latched input channel, ISO 8855"))
+            signals.append((f"inputs.{name}_valid", (U[:, N_IN + c] > 0.5).astype(np.uint8), "",
+                            f"{name} fresh and E2E-checked"))
+        if signals:
+            self._put("inputs", t, signals, "slipd latched inputs per tick")
+
+    def write_truth(self, columns: dict[str, np.ndarray]) -> None:
+        from slipd.sim.sensors import TRUTH_UNITS
+
+        signals = [(f"truth.{n}", np.asarray(v, dtype=np.float64), TRUTH_UNITS.get(n, ""),
+                    "reference (truth), SI, ISO 8855") for n, v in columns.items() if n != "t"]
+        self._put("truth", columns["t"], signals, "reference sensor (truth)")
+
+    def close(self) -> None:
+        try:
+            self._mdf.save(self.path, overwrite=True)
+        except OSError as exc:
+            raise ConfigError(f"--out {self.path}: cannot write: {exc}") from exc
+        finally:
+            self._mdf.close()
+
+
+#: suffix -> writer
+WRITERS: dict[str, type[EstimateWriter]] = {
+    ".csv": CsvWriter, ".parquet": ParquetWriter, ".mcap": McapWriter, ".mf4": Mf4Writer}
+
+
+def open_writer(path: str | Path, info: RunInfo) -> EstimateWriter:
+    """The writer of ``path``'s suffix."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in WRITERS:
+        raise ConfigError(f"--out {path}: unknown format {suffix!r}; expected one of "
+                          f"{tuple(WRITERS)}")
+    return WRITERS[suffix](Path(path), info)
+
+
+def write_estimates(path: str | Path, estimates: list, info: RunInfo,
+                    inputs=None, truth: dict[str, np.ndarray] | None = None) -> None:
+    """A whole run: ``estimates`` (engine Estimates), optionally the engine's Inputs and the
+    truth columns (for MCAP and MF4)."""
+    with open_writer(path, info) as writer:
+        if inputs is not None:
+            writer.write_inputs(inputs.t, inputs.U)
+        for estimate in estimates:
+            writer.write(estimate.method, estimate.t, estimate.out)
+        if truth is not None:
+            writer.write_truth(truth)
