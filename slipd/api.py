@@ -438,24 +438,19 @@ def _input_series(inputs: pd.DataFrame | None) -> dict[str, tuple]:
     """The input panels' series of a :func:`decode` frame (those it has)."""
     import numpy as np
 
+    from slipd.eval.plots import input_series
+
     if inputs is None:
         return {}
-    t = inputs["t"].to_numpy(dtype=np.float64)
-    series = {}
-    for name in ("ay", "yaw_rate", "steer"):
-        if name in inputs.columns:
-            valid = inputs.get(f"{name}_valid")
-            series[name] = (t, inputs[name].to_numpy(dtype=np.float64),
-                            None if valid is None else valid.to_numpy(dtype=bool))
-    wheels = [f"wheel_speed_{w}" for w in ("fl", "fr", "rl", "rr")]
-    if all(w in inputs.columns for w in wheels):
-        values = inputs[wheels].to_numpy(dtype=np.float64).mean(axis=1)
-        valid = np.ones(len(t), dtype=bool)
-        for w in wheels:
-            if f"{w}_valid" in inputs.columns:
-                valid &= inputs[f"{w}_valid"].to_numpy(dtype=bool)
-        series["speed"] = (t, values, valid)
-    return series
+
+    def channel(name: str):
+        if name not in inputs.columns:
+            return None
+        valid = inputs.get(f"{name}_valid")
+        return (inputs[name].to_numpy(dtype=np.float64),
+                None if valid is None else valid.to_numpy(dtype=bool))
+
+    return input_series(inputs["t"].to_numpy(dtype=np.float64), channel)
 
 
 # ---- simulate ---------------------------------------------------------------------------

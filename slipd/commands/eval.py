@@ -42,8 +42,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, metavar="FILE.json",
                         help="write the whole result as JSON (tables still print)")
     parser.add_argument("--plot", type=Path, metavar="FILE",
-                        help="a single log: beta over time and the error CDF; a suite or "
-                             "--mismatch: a summary bar chart (PNG, PDF or SVG by suffix)")
+                        help="a single log: beta over time, VALID spans, error over time and "
+                             "the error CDF (small multiples beyond 4 methods); a suite or "
+                             "--mismatch: heatmaps of RMS and VALID > 5 deg per scenario or "
+                             "case, and FILE's stem + .cdf: the pooled error CDFs (PNG, PDF or "
+                             "SVG by suffix)")
+    parser.add_argument("--plot-inputs", action="store_true",
+                        help="a single log's plot also shows ay, yaw rate, steer and speed")
 
 
 def _methods(spec: str) -> list[str]:
@@ -161,13 +166,44 @@ def _plot(args, logs, results: list[CaseResult], mismatch_pooled, plot_data, sin
     from slipd.eval import plots
 
     if plot_data is not None and single is not None:
+        inputs = (_input_series(logs[0].log, args.profile, plot_data["series"])
+                  if args.plot_inputs else None)
         plots.plot_evaluation(args.plot, plot_data["truth_t"], plot_data["truth_beta"],
-                              plot_data["series"], single, title=logs[0].name)
+                              plot_data["series"], single, title=logs[0].name, inputs=inputs)
+        print(f"figure -> {args.plot}", file=sys.stderr)
         return
-    groups = {name: rows for name, rows in results[0].logs.items()}
+    nominal = results[0]
     if mismatch_pooled is not None:
         groups = {c.name: c.overall() for c in results}
-        title = f"mismatch cases ({len(logs)} log(s) pooled per case)"
+        pooled, accumulators = {m: a.scores() for m, a in mismatch_pooled.items()}, \
+            mismatch_pooled
+        what = f"mismatch cases ({len(logs)} log(s) per case)"
+        cdf_title = f"|beta error|, the {len(results) - 1} mismatch cases pooled"
     else:
-        title = f"suite {args.suite}" if args.suite is not None else logs[0].name
-    plots.plot_summary(args.plot, groups, title=title)
+        groups, pooled, accumulators = nominal.logs, nominal.overall(), nominal.pooled
+        what = f"suite {args.suite}" if args.suite is not None else logs[0].name
+        cdf_title = f"|beta error|, {what}, all logs pooled"
+    plots.plot_summary(args.plot, groups, title=what, pooled=pooled)
+    cdf = args.plot.with_name(args.plot.stem + ".cdf" + args.plot.suffix)
+    plots.plot_summary_cdf(cdf, accumulators, title=cdf_title)
+    print(f"figures -> {args.plot}, {cdf}", file=sys.stderr)
+
+
+def _input_series(log: Path, profile: str, series: dict) -> dict:
+    """ay, yaw rate, steer and wheel speeds of a log as the estimators saw them (latched), on
+    the time axis of the plot's ``series`` (the truth's)."""
+    from slipd.channels import VALID, In
+    from slipd.eval.plots import input_series
+    from slipd.profile import load_profile
+    from slipd.replay.engine import latch_log_or_recording
+    from slipd.replay.readers import read_frames
+
+    inputs = latch_log_or_recording(read_frames(log), load_profile(profile))
+    shown_t, _ = next(iter(series.values()))
+    shift = inputs.t[0] - shown_t[0] if len(inputs.t) and len(shown_t) else 0.0
+
+    def channel(name: str):
+        ch = In[name.upper()]
+        return inputs.U[:, ch], inputs.U[:, VALID + ch] > 0.5
+
+    return input_series(inputs.t - shift, channel)

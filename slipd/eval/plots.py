@@ -131,6 +131,22 @@ def _format_cdf(ax, lines: bool) -> None:
         ax.text(0.5, 0.5, "no scored ticks", ha="center", va="center", transform=ax.transAxes)
 
 
+def input_series(t: np.ndarray, channel) -> dict[str, tuple]:
+    """The input panels' series: ``channel(name)`` -> (SI values, valid or None) or None for
+    a channel the run lacks; speed is the mean of the four wheel speeds."""
+    series = {}
+    for name in ("ay", "yaw_rate", "steer"):
+        got = channel(name)
+        if got is not None:
+            series[name] = (t, *got)
+    wheels = [channel(f"wheel_speed_{w}") for w in ("fl", "fr", "rl", "rr")]
+    if all(w is not None for w in wheels):
+        values = np.mean([w[0] for w in wheels], axis=0)
+        flags = [w[1] for w in wheels if w[1] is not None]
+        series["speed"] = (t, values, np.logical_and.reduce(flags) if flags else None)
+    return series
+
+
 def _input_panels(axes, inputs: Mapping[str, tuple], t0: float) -> None:
     for ax, (name, (t, values, valid)) in zip(axes, inputs.items(), strict=True):
         label, factor = INPUT_PANELS.get(name, (name, 1.0))
@@ -309,17 +325,16 @@ def plot_summary(path: str | Path | None, groups: Mapping[str, Mapping[str, Scor
                       for g in names])
     from matplotlib.colors import LogNorm, Normalize
 
-    width = 2.5 + 0.55 * len(methods)
-    fig = _figure(figsize=(2 * width, 1.8 + 0.32 * len(names)))
-    ax_rms, ax_bad = fig.subplots(1, 2, sharey=True)
+    fig = _figure(figsize=(3.0 + 0.62 * len(methods), 2.6 + 0.56 * len(names)))
+    ax_rms, ax_bad = fig.subplots(2, 1, sharex=True)
     finite = rms[np.isfinite(rms) & (rms > 0)]
     norm = LogNorm(vmin=max(finite.min(), 1e-2), vmax=finite.max()) if finite.size else None
     _heatmap(ax_rms, rms, "viridis_r", norm, "{:.2f}", None, fig, "beta RMS [deg]")
     _heatmap(ax_bad, bad, "magma_r", Normalize(0, max(5.0, np.nanmax(bad) if np.isfinite(
         bad).any() else 5.0)), "{:.1f}", never, fig, "VALID ticks > 5 deg off [%]")
+    ax_bad.set_xticks(np.arange(len(methods)), methods, rotation=40, ha="right", fontsize=8)
     for ax in (ax_rms, ax_bad):
-        ax.set_xticks(np.arange(len(methods)), methods, rotation=40, ha="right", fontsize=8)
-    ax_rms.set_yticks(np.arange(len(names)), names, fontsize=8)
+        ax.set_yticks(np.arange(len(names)), names, fontsize=8)
     if pooled is not None:
         for ax in (ax_rms, ax_bad):
             ax.axhline(len(names) - 1.5, color="white", lw=2)
@@ -333,7 +348,13 @@ def _heatmap(ax, values, cmap, norm, fmt, never, fig, label) -> None:
     shown = np.ma.masked_invalid(values)
     image = ax.imshow(shown, cmap=cmap, norm=norm, aspect="auto")
     ax.set_facecolor("0.92")
-    fig.colorbar(image, ax=ax, shrink=0.8, pad=0.01).set_label(label, fontsize=8)
+    from matplotlib.ticker import FormatStrFormatter
+
+    bar = fig.colorbar(image, ax=ax, shrink=0.8, pad=0.01)
+    bar.set_label(label, fontsize=8)
+    bar.ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+    bar.ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
+    bar.ax.tick_params(labelsize=7, which="both")
     ax.set_title(label, fontsize=9)
     cmap_obj = image.cmap
     for (i, j), v in np.ndenumerate(values):
@@ -351,22 +372,26 @@ def _heatmap(ax, values, cmap, norm, fmt, never, fig, label) -> None:
 
 def plot_summary_cdf(path: str | Path | None, pooled: Mapping[str, Accumulator],
                      title: str = "", methods: Sequence[str] | None = None):
-    """The pooled CDF of |beta error| per method (all scored ticks, solid; VALID ticks,
-    dotted) from the accumulators' histograms. Returns the Figure (written to ``path``)."""
+    """The pooled CDF of |beta error| per method from the accumulators' histograms: over all
+    scored ticks and, for up to OVERLAY_MAX methods, over the VALID ticks only (dotted).
+    Returns the Figure (written to ``path``)."""
     if path is not None:
         check_suffix(path)
     fig = _figure(figsize=(10, 5.5))
     ax = fig.subplots()
-    for name in methods or list(pooled):
+    names = list(methods or pooled)
+    valid_too = len(names) <= OVERLAY_MAX
+    for name in names:
         st = style(name)
         x, f = pooled[name].cdf()
         if x.size:
             ax.plot(np.maximum(x, CDF_FLOOR_DEG), f, lw=1.4, label=name, **st)
         xv, fv = pooled[name].cdf(valid_only=True)
-        if xv.size:
+        if valid_too and xv.size:
             ax.plot(np.maximum(xv, CDF_FLOOR_DEG), fv, lw=0.9, color=st["color"], linestyle=":")
     _format_cdf(ax, bool(ax.lines))
-    ax.set_xlabel("|beta error| [deg]: all scored ticks (line), VALID ticks only (dotted)")
+    ax.set_xlabel("|beta error| [deg], all scored ticks" + (
+        " (line) and VALID ticks only (dotted)" if valid_too else ""))
     if ax.lines:
         ax.legend(loc="upper left", fontsize=8, ncol=2)
     if title:
