@@ -45,6 +45,7 @@ bench: setup
 	$(BIN)/python -m benchmarks.codec
 	$(BIN)/python -m benchmarks.replay
 	$(BIN)/python -m benchmarks.estimators
+	$(BIN)/python -m benchmarks.formats
 	$(BIN)/python -m benchmarks.sim_variants
 	$(BIN)/python -m benchmarks.daemon_latency
 
