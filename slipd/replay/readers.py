@@ -4,21 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from slipd.errors import LogFormatError
-from slipd.replay.candump import (
-    FLAG_BRS,
-    FLAG_DIRECTION,
-    FLAG_ERROR,
-    FLAG_ESI,
-    FLAG_EXTENDED,
-    FLAG_FD,
-    FLAG_REMOTE,
-    FLAG_TX,
-    Frames,
-    read_candump,
-)
+from slipd.replay.candump import Frames, read_candump
 
 CANDUMP_SUFFIXES = (".log", ".candump")
 LIBRARY_SUFFIXES = (".asc", ".blf", ".trc", ".mf4", ".csv")
@@ -44,33 +31,9 @@ def read_frames(path: str | Path, skip_bad: bool = False) -> Frames:
 def _read_with_python_can(path: Path) -> Frames:
     import can
 
-    t, ids, flags, dlc, rows, chan = [], [], [], [], [], []
-    names: list[str] = []
+    from slipd.replay.messages import frames_from_messages
+
     try:
-        for message in can.LogReader(str(path)):
-            f = 0
-            f |= FLAG_EXTENDED if message.is_extended_id else 0
-            f |= FLAG_REMOTE if message.is_remote_frame else 0
-            f |= FLAG_ERROR if message.is_error_frame else 0
-            f |= FLAG_FD if message.is_fd else 0
-            f |= FLAG_BRS if message.bitrate_switch else 0
-            f |= FLAG_ESI if message.error_state_indicator else 0
-            f |= 0 if message.is_rx else FLAG_TX | FLAG_DIRECTION
-            name = str(message.channel) if message.channel is not None else "can0"
-            if name not in names:
-                names.append(name)
-            t.append(message.timestamp)
-            ids.append(message.arbitration_id)
-            flags.append(f)
-            dlc.append(len(message.data) if message.data is not None else message.dlc)
-            rows.append(bytes(message.data or b""))
-            chan.append(names.index(name))
+        return frames_from_messages(can.LogReader(str(path)), source=str(path))
     except (ValueError, OSError) as exc:
         raise LogFormatError(f"{path}: python-can cannot read it: {exc}") from exc
-    width = max([8] + [len(r) for r in rows])
-    data = np.zeros((len(rows), width), dtype=np.uint8)
-    for i, row in enumerate(rows):
-        data[i, : len(row)] = np.frombuffer(row, dtype=np.uint8)
-    return Frames(np.array(t, np.float64), np.array(ids, np.int64), np.array(flags, np.uint8),
-                  np.array(dlc, np.uint8), data, np.array(chan, np.uint8), names or ["can0"],
-                  str(path))
