@@ -118,6 +118,7 @@ def test_estimate_of_a_log_a_simulation_messages_and_decoded_channels_agree(driv
         assert np.array_equal(rows["beta"].to_numpy(), engine[m].out[:, 0], equal_nan=True)
         assert np.array_equal(rows["t"].to_numpy(), engine[m].t)
     _same(by_log, slipd.estimate(drive, estimator=METHODS))
+    _same(by_log, slipd.estimate(drive.messages(), estimator=METHODS))  # a generator
     _same(by_log, slipd.estimate(list(can.LogReader(str(drive.log))), estimator=METHODS))
     _same(by_log, slipd.estimate(slipd.decode(drive.log), estimator=METHODS))
     assert by_log.attrs["units"]["beta"] == "rad" and by_log["valid"].dtype == bool
