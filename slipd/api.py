@@ -115,14 +115,17 @@ def _frames(source: Any, skip_bad: bool = False) -> Frames:
                       f"DataFrame of SI channels, got {type(source).__name__}")
 
 
-def _inputs(source: Any, profile: Profile, skip_bad: bool = False) -> Inputs:
-    """The latched inputs at every tick of ``source`` (a DataFrame is taken as ticks)."""
+def _inputs(source: Any, profile: Profile, skip_bad: bool = False,
+            buses: Mapping[str, str] | None = None) -> Inputs:
+    """The latched inputs at every tick of ``source`` (a DataFrame is taken as ticks);
+    ``buses``: the profile's bus names -> the log's channel names (``--bus chassis=can0``)."""
     from slipd.replay.engine import latch_log_or_recording
 
     pd = _pandas()
     if isinstance(source, pd.DataFrame):
         return _inputs_of_frame(source)
-    return latch_log_or_recording(_frames(source, skip_bad), profile)
+    return latch_log_or_recording(_frames(source, skip_bad), profile,
+                                  dict(buses) if buses else None)
 
 
 def _channel_names() -> dict[str, int]:
@@ -183,54 +186,29 @@ def _inputs_of_frame(frame: pd.DataFrame) -> Inputs:
 
 @_kernels
 def decode(log: Any, profile: str | os.PathLike | Profile = "default", *,
-           channels: str | Sequence[str] = "mapped", skip_bad: bool = False) -> pd.DataFrame:
-    """Decode a log through the codec and latch it onto the 100 Hz ticks.
+           buses: Mapping[str, str] | None = None, skip_bad: bool = False) -> pd.DataFrame:
+    """Decode a log through the codec and latch it onto the 100 Hz ticks (``slipd decode``).
 
     ``log``: a log path (candump ``.log``/``.log.gz``, ``.asc``, ``.blf``, ``.trc``, ``.mf4``),
-    an iterable of python-can Messages or a :class:`Simulation`. ``channels``: ``"mapped"``
-    (those the profile maps), ``"all"`` or a list of names (``slipd.channels.In``, lower
-    case). Returns one row per tick: ``t`` (s, the log's time axis), each channel in SI units
-    and ``<channel>_valid`` (fresh and E2E-checked at that tick; an invalid channel holds its
-    last value, 0 before the first). ``attrs``: ``units``, ``profile``, ``frames`` and the
-    decoder's per-message ``errors``. The frame is what :func:`estimate` takes back.
+    an iterable of python-can Messages or a :class:`Simulation`; ``buses``: a several-bus
+    profile's bus names -> the log's channel names (as ``--bus chassis=can0``). Returns one
+    row per tick: ``t`` (s, the log's time axis), then per channel the profile maps its SI
+    value and ``<channel>_valid`` (fresh, E2E-checked and not marked unavailable at that
+    tick; an invalid channel holds its last value, 0 before the first). ``attrs``: ``units``,
+    ``profile``, ``frames`` and the decoder's per-message ``errors``. The frame is what
+    :func:`estimate` takes back.
     """
-    from slipd.channels import VALID
+    from slipd.profile_tools.decode import channel_columns, unit_of
 
     pd = _pandas()
     prof = _profile(profile)
-    inputs = _inputs(log, prof, skip_bad)
-    wanted = _wanted_channels(channels, prof)
-    columns: dict[str, Any] = {"t": inputs.t}
-    for ch in wanted:
-        columns[ch.name.lower()] = inputs.U[:, ch]
-    for ch in wanted:
-        columns[f"{ch.name.lower()}_valid"] = inputs.U[:, VALID + ch] > 0.5
-    frame = pd.DataFrame(columns)
-    frame.attrs.update(units=_input_units(wanted), profile=prof.name, frames=inputs.n_frames,
-                       errors=inputs.errors)
+    inputs = _inputs(log, prof, skip_bad, buses)
+    columns = channel_columns(inputs, prof)
+    frame = pd.DataFrame({name: values.astype(bool) if name.endswith("_valid") else values
+                          for name, values in columns.items()})
+    frame.attrs.update(units={c: unit_of(c) for c in columns if not c.endswith("_valid")},
+                       profile=prof.name, frames=inputs.n_frames, errors=inputs.errors)
     return frame
-
-
-def _wanted_channels(channels: str | Sequence[str], prof: Profile) -> list:
-    from slipd.channels import In
-
-    if channels == "mapped":
-        return sorted(prof.channels, key=int)
-    if channels == "all":
-        return list(In)
-    names = _channel_names()
-    chosen = [channels] if isinstance(channels, str) else list(channels)
-    unknown = [c for c in chosen if c not in names]
-    if unknown:
-        raise ConfigError(f"unknown channel(s) {unknown}; expected 'mapped', 'all' or some of "
-                          f"{list(names)}")
-    return [In(names[c]) for c in chosen]
-
-
-def _input_units(channels) -> dict[str, str]:
-    from slipd.channels import IN_UNITS
-
-    return {"t": "s", **{ch.name.lower(): IN_UNITS[ch] for ch in channels}}
 
 
 # ---- estimate ---------------------------------------------------------------------------
@@ -240,12 +218,13 @@ def _input_units(channels) -> dict[str, str]:
 def estimate(source: Any, profile: str | os.PathLike | Profile = "default",
              estimator: str | Sequence[str] = "kinematic_heuristic", *,
              overrides: Mapping[str, float] | None = None,
-             skip_bad: bool = False) -> pd.DataFrame:
+             buses: Mapping[str, str] | None = None, skip_bad: bool = False) -> pd.DataFrame:
     """Run estimators over a log, python-can Messages, a :class:`Simulation` or a DataFrame
     of SI channels per 10 ms tick (``t`` plus channel columns, as :func:`decode` returns).
 
     ``estimator``: a name, a list of names, comma-separated names or ``"all"``;
-    ``overrides``: parameter values by name (one method only). Returns one row per tick and
+    ``overrides``: parameter values by name (one method only); ``buses``: as :func:`decode`.
+    Returns one row per tick and
     method: ``t`` (s), ``estimator``, ``beta``, ``beta_rate``, ``vx``, ``vy``, ``mu`` (NaN where
     the method does not estimate it), ``sigma_beta``, ``roll`` (rad, rad/s, m/s),
     ``friction_class``, ``status`` (slipd.channels.Status bits) and ``valid`` (the VALID bit:
@@ -256,7 +235,7 @@ def estimate(source: Any, profile: str | os.PathLike | Profile = "default",
     methods = _methods(estimator)
     if overrides and len(methods) != 1:
         raise ConfigError("overrides apply to one estimator; name one")
-    inputs = _inputs(source, prof, skip_bad)
+    inputs = _inputs(source, prof, skip_bad, buses)
     from slipd.replay.engine import run_method
 
     results = [run_method(inputs, prof, name, dict(overrides or {})) for name in methods]
@@ -479,23 +458,30 @@ class Simulation:
         """Every frame of the drive through the codec, time-sorted (what the log holds)."""
         import numpy as np
 
-        from slipd.replay.candump import Frames
-        from slipd.sim.writer import encode_frames
+        from slipd.replay.candump import FLAG_FD, Frames
+        from slipd.sim.writer import bus_channels, encode_frames
 
         t, frame_id, data, dlc = encode_frames(self.result, self.profile, self.epoch)
-        n = len(t)
-        return Frames(t, frame_id, np.zeros(n, np.uint8), dlc, data, np.zeros(n, np.uint8),
-                      ["can0"], f"<simulation {self.scenario}>")
+        channel, channels = bus_channels(frame_id, self.profile)
+        flags = np.where(dlc > 8, FLAG_FD, 0).astype(np.uint8)  # as write_candump writes it
+        return Frames(t, frame_id, flags, dlc, data, channel, channels,
+                      f"<simulation {self.scenario}>")
 
     def messages(self) -> Iterable:
         """The frames as python-can Messages (e.g. to send onto a bus)."""
         import can
 
+        from slipd.replay.candump import FLAG_EXTENDED, FLAG_FD
+
         frames = self.frames()
         for k in range(len(frames)):
+            flags = int(frames.flags[k])
             yield can.Message(timestamp=float(frames.t[k]),
-                              arbitration_id=int(frames.frame_id[k]), is_extended_id=False,
-                              data=bytes(frames.data[k, : frames.dlc[k]]), channel="can0")
+                              arbitration_id=int(frames.frame_id[k]),
+                              is_extended_id=bool(flags & FLAG_EXTENDED),
+                              is_fd=bool(flags & FLAG_FD),
+                              data=bytes(frames.data[k, : frames.dlc[k]]),
+                              channel=frames.channels[frames.channel[k]])
 
 
 @_kernels
@@ -563,6 +549,8 @@ class Estimator:
       NaN or has a false ``<channel>_valid`` is invalid at this tick);
     * ``receive(message)`` for each CAN frame (python-can Message) and ``tick(t)`` every
       10 ms: the profile's codec decodes, E2E-checks and latches the frames as on the car.
+      A several-bus profile reads each message's ``channel`` as the bus of that name, or as
+      ``buses`` maps them (profile bus name -> channel name, as ``slipd run --bus``).
 
     A tick ``t`` more than 10 ms after the last steps the method once per elapsed tick (at
     most 101 times), as the daemon does after an overrun.
@@ -571,7 +559,8 @@ class Estimator:
     @_kernels
     def __init__(self, name: str = "kinematic_heuristic",
                  profile: str | os.PathLike | Profile = "default",
-                 overrides: Mapping[str, float] | None = None):
+                 overrides: Mapping[str, float] | None = None,
+                 buses: Mapping[str, str] | None = None):
         import numpy as np
 
         from slipd.channels import N_OUT, U_LEN
@@ -588,6 +577,11 @@ class Estimator:
         self._method = base.load(self.name, dict(overrides or {}))
         self._codec = Codec(self.profile)
         self._supervise = supervise
+        names = self._codec.inputs.buses
+        #: message channel name -> bus index; None: a one-bus profile reads every channel
+        self._bus_of = None if len(names) == 1 and not buses else (
+            {str(ch): self._codec.bus_index(bus) for bus, ch in buses.items()} if buses
+            else {bus: i for i, bus in enumerate(names)})
         self._required = required_mask(base.required_channels(self._method, self.profile))
         self._catch_up = base.catch_up_steps
         self._names = _channel_names()
@@ -644,8 +638,14 @@ class Estimator:
         Error and remote frames are ignored, as on the car."""
         if message.is_error_frame or message.is_remote_frame:
             return False
+        bus = 0
+        if self._bus_of is not None:
+            bus = self._bus_of.get(str(message.channel), -1)
+            if bus < 0:  # a channel the profile does not read
+                return False
         row = self._codec.decode(int(message.arbitration_id), bytes(message.data or b""),
-                                 float(message.timestamp), bool(message.is_extended_id))
+                                 float(message.timestamp), bool(message.is_extended_id),
+                                 bus=bus)
         return row >= 0
 
     def tick(self, t: float) -> Output:

@@ -149,21 +149,6 @@ def new_out() -> np.ndarray:
     return out
 
 
-#: SI unit of each input channel (the comments of :class:`In`), for tables and plots.
-IN_UNITS: dict[In, str] = {
-    In.AX: "m/s^2", In.AY: "m/s^2", In.AZ: "m/s^2",
-    In.YAW_RATE: "rad/s", In.ROLL_RATE: "rad/s", In.PITCH_RATE: "rad/s",
-    In.STEER: "rad", In.STEER_RATE: "rad/s",
-    **{ch: "m/s" for ch in WHEEL_SPEEDS},
-    In.GNSS_VN: "m/s", In.GNSS_VE: "m/s", In.GNSS_VU: "m/s", In.GNSS_FIX: "1",
-    In.MAG_X: "uT", In.MAG_Y: "uT", In.MAG_Z: "uT",
-    In.DRIVE_TORQUE_FL: "Nm", In.DRIVE_TORQUE_FR: "Nm", In.DRIVE_TORQUE_RL: "Nm",
-    In.DRIVE_TORQUE_RR: "Nm",
-    In.BRAKE_TORQUE_FL: "Nm", In.BRAKE_TORQUE_FR: "Nm", In.BRAKE_TORQUE_RL: "Nm",
-    In.BRAKE_TORQUE_RR: "Nm",
-    In.SPEED_REF: "m/s",
-}
-
 #: SI unit of each estimator output (the comments of :class:`Out`).
 OUT_UNITS: dict[Out, str] = {
     Out.BETA: "rad", Out.BETA_RATE: "rad/s", Out.VX: "m/s", Out.VY: "m/s", Out.MU: "1",

@@ -49,16 +49,22 @@ def write_inputs(path: Path, inputs: Inputs, profile: Profile) -> int:
     """Write the table as CSV or Parquet by suffix; returns the rows written."""
     columns = channel_columns(inputs, profile)
     suffix = path.suffix.lower()
-    if suffix == ".csv":
-        header = ("# slipd decode: profile " + profile.name + "; SI units, ISO 8855 signs; "
-                  + ", ".join(f"{c} [{unit_of(c)}]" for c in columns) + "\n")
+    if suffix == ".csv":  # plain (pandas.read_csv reads it); units in FILE.csv.meta.json
+        import json
+
+        from slipd.replay.writers import sidecar_of
+
         matrix = np.column_stack(list(columns.values()))
         formats = ["%.6f"] + ["%d" if c.endswith("_valid") else "%.9g"
                               for c in list(columns)[1:]]
         with open(path, "w", encoding="utf-8") as handle:
-            handle.write(header)
             handle.write(",".join(columns) + "\n")
             np.savetxt(handle, matrix, fmt=formats, delimiter=",")
+        sidecar_of(path).write_text(json.dumps({
+            "format": f"slipd decode: profile {profile.name}; SI units, ISO 8855 signs, one "
+                      "row per 10 ms tick",
+            "profile": profile.name,
+            "columns": {c: {"unit": unit_of(c)} for c in columns}}, indent=2) + "\n")
     elif suffix == ".parquet":
         try:
             import pyarrow as pa

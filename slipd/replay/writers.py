@@ -26,10 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
-from slipd.channels import IN_UNITS, N_IN, OUT_UNITS, VALID, In, Out, Status
+from slipd.channels import N_IN, OUT_UNITS, VALID, In, Out, Status
 from slipd.errors import ConfigError, DependencyError
+from slipd.profile_tools.decode import unit_of
 
 DEG = 180.0 / math.pi
+
 #: The replay table (CSV, Parquet): name -> (Out column or None, scale from SI, unit).
 TABLE_COLUMNS: dict[str, tuple[Out | None, float, str]] = {
     "t": (None, 1.0, "s"),
@@ -247,8 +249,8 @@ class McapWriter(EstimateWriter):
         if info.channels:
             names = [c.name.lower() for c in info.channels]
             props = {"t": ("number", "s", DESCRIPTIONS["t"])}
-            props.update({n: ("number", IN_UNITS[c], "latched input channel, ISO 8855")
-                          for n, c in zip(names, info.channels, strict=True)})
+            props.update({n: ("number", unit_of(n), "latched input channel, ISO 8855")
+                          for n in names})
             props.update({f"{n}_valid": ("boolean", "", f"{n} fresh and E2E-checked")
                           for n in names})
             schema = self._writer.register_schema("slipd.Inputs", "jsonschema",
@@ -373,7 +375,7 @@ class Mf4Writer(EstimateWriter):
         signals = []
         for c in self.info.channels:
             name = c.name.lower()
-            signals.append((f"inputs.{name}", U[:, c].astype(np.float64), IN_UNITS[c],
+            signals.append((f"inputs.{name}", U[:, c].astype(np.float64), unit_of(name),
                             "latched input channel, ISO 8855"))
             signals.append((f"inputs.{name}_valid", (U[:, N_IN + c] > 0.5).astype(np.uint8), "",
                             f"{name} fresh and E2E-checked"))

@@ -136,17 +136,24 @@ def write_log(path: str | Path, result: SimResult, profile, epoch: float = START
     from slipd.replay.candump import write_candump
 
     t, frame_id, data, dlc = encode_frames(result, profile, epoch)
+    channel, channels = bus_channels(frame_id, profile)
+    if len(channels) == 1:
+        return write_candump(path, t, frame_id, data, dlc, interface=channels[0])
+    return write_candump(path, t, frame_id, data, dlc, channel=channel, channels=channels)
+
+
+def bus_channels(frame_id: np.ndarray, profile) -> tuple[np.ndarray, list[str]]:
+    """Each frame's channel index and the channel names of a simulated log: ``can0`` for a
+    one-bus profile, else one channel per bus, named after it."""
     buses = profile.buses if not isinstance(profile, str) else ("main",)
     if len(buses) == 1:
-        return write_candump(path, t, frame_id, data, dlc, interface="can0")
-    # a profile on several buses: each frame on the channel named after its bus
+        return np.zeros(len(frame_id), dtype=np.uint8), ["can0"]
     from slipd.codec import Codec
 
     plan = Codec.from_profile(profile).inputs
     bus_of = {plan.frame_id(n): plan.buses.index(plan.bus(n)) for n in plan.message_names}
     channel = np.array([bus_of[int(i)] for i in frame_id], dtype=np.uint8)
-    return write_candump(path, t, frame_id, data, dlc, channel=channel,
-                         channels=list(plan.buses))
+    return channel, list(plan.buses)
 
 
 def truth_path_of(log: str | Path) -> Path:
