@@ -23,9 +23,9 @@ import time
 import numpy as np
 
 from slipd.channels import N_OUT
-from slipd.estimators import base
+from slipd.estimators import registry
+from slipd.pipeline import TICK_DT
 from slipd.profile import load_profile
-from slipd.replay.engine import TICK_DT
 
 TARGET_US = 2.0
 ENSEMBLE_TARGET_US = 10.0
@@ -38,7 +38,7 @@ def drive_inputs(scenario: str) -> np.ndarray:
 
 
 def measure(name: str, U: np.ndarray, vehicle: np.ndarray, repeats: int) -> dict:
-    method = base.load(name)
+    method = registry.load(name)
     n = len(U)
     out = np.zeros((n, N_OUT))
     state = method.init(vehicle)
@@ -77,7 +77,7 @@ def main() -> None:
     args = parser.parse_args()
     vehicle = load_profile("default").vehicle
     U = drive_inputs(args.scenario)
-    names = args.methods.split(",") if args.methods else base.available()
+    names = args.methods.split(",") if args.methods else registry.available()
     if "zero" in names:
         names.remove("zero")
     names.insert(0, "zero")

@@ -23,7 +23,7 @@ import numpy as np
 from benchmarks.codec import bus_frames
 from slipd.channels import N_OUT, VALID, In, new_u
 from slipd.codec import Codec
-from slipd.estimators import base
+from slipd.estimators import registry
 from slipd.profile import load_profile
 from slipd.replay.candump import read_candump, write_candump
 from slipd.replay.engine import latch_log, run_method
@@ -34,7 +34,7 @@ def library_path(log: Path, profile, method_name: str, limit_frames: int) -> tup
     import cantools
 
     db = cantools.database.load_file(str(profile.dbc_path))
-    method = base.load(method_name)
+    method = registry.load(method_name)
     state = method.init(profile.vehicle)
     out = np.zeros(N_OUT)
     u = new_u()

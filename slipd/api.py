@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from slipd.replay.candump import Frames
     from slipd.replay.engine import Inputs
 
-#: The tick interval of every estimator, s (100 Hz, as the daemon).
+#: The tick interval of every estimator, s (100 Hz, as the daemon; slipd.pipeline.TICK_DT).
 TICK_DT = 0.01
 #: The estimate DataFrame's value columns, in slipd.channels.Out order.
 OUTPUT_COLUMNS = ("beta", "beta_rate", "vx", "vy", "mu", "sigma_beta", "roll",
@@ -80,18 +80,16 @@ def _profile(profile: str | os.PathLike | Profile) -> Profile:
 
 
 def _methods(estimator: str | Sequence[str]) -> list[str]:
-    from slipd.estimators.base import available
+    from slipd.estimators import registry
 
-    names = available()
     if isinstance(estimator, str):
-        chosen = names if estimator == "all" else [
-            s.strip() for s in estimator.split(",") if s.strip()]
-    else:
-        chosen = list(estimator)
-    unknown = [c for c in chosen if c not in names]
-    if unknown or not chosen:
-        raise ConfigError(f"unknown estimator(s) {unknown or chosen!r}; available: "
-                          f"{', '.join(names)} (or 'all')")
+        return registry.parse_names(estimator)
+    chosen = list(estimator)
+    if not chosen:
+        raise ConfigError(f"no estimator named; available: {', '.join(registry.available())} "
+                          f"(or 'all')")
+    for name in chosen:
+        registry.spec(name)  # an unknown one fails naming the available ones
     return chosen
 
 
@@ -141,7 +139,7 @@ def _inputs_of_frame(frame: pd.DataFrame) -> Inputs:
     import numpy as np
 
     from slipd.channels import U_LEN, U_TIME, VALID
-    from slipd.estimators.base import steps_per_tick
+    from slipd.pipeline import steps_per_tick
     from slipd.replay.engine import Inputs
 
     names = _channel_names()
@@ -564,26 +562,21 @@ class Estimator:
         import numpy as np
 
         from slipd.channels import N_OUT, U_LEN
-        from slipd.estimators import base
-        from slipd.estimators.supervision import required_mask
+        from slipd.pipeline import Pipeline
 
         if not isinstance(name, str) or name == "all" or "," in name:
             raise ConfigError(f"Estimator takes one estimator name, got {name!r}")
         self.name = _methods(name)[0]
         self.profile = _profile(profile)
         from slipd.codec import Codec
-        from slipd.estimators.supervision import supervise
 
-        self._method = base.load(self.name, dict(overrides or {}))
+        self._pipeline = Pipeline(self.name, self.profile, dict(overrides or {}), TICK_DT)
         self._codec = Codec(self.profile)
-        self._supervise = supervise
         names = self._codec.inputs.buses
         #: message channel name -> bus index; None: a one-bus profile reads every channel
         self._bus_of = None if len(names) == 1 and not buses else (
             {str(ch): self._codec.bus_index(bus) for bus, ch in buses.items()} if buses
             else {bus: i for i, bus in enumerate(names)})
-        self._required = required_mask(base.required_channels(self._method, self.profile))
-        self._catch_up = base.catch_up_steps
         self._names = _channel_names()
         self._u = np.zeros(U_LEN)
         self._out = np.zeros(N_OUT)
@@ -598,7 +591,7 @@ class Estimator:
         """Start again: the method's initial state, an empty latch, no previous tick."""
         from slipd.codec import DecodeState
 
-        self._state = self._method.init(self.profile.vehicle)
+        self._state = self._pipeline.new_state()
         self._codec.state = DecodeState.new(self._codec.inputs.n_messages)
         self._last_t: float | None = None
 
@@ -664,6 +657,7 @@ class Estimator:
 
     def _advance(self, t: float, sample: bool) -> Output:
         from slipd.channels import U_TIME, Out, Status
+        from slipd.pipeline import catch_up_steps
 
         u, out = self._u, self._out
         if sample:
@@ -671,12 +665,9 @@ class Estimator:
         u[U_TIME] = t
         steps = 1
         if self._last_t is not None:
-            steps = int(self._catch_up(int(round((t - self._last_t) / TICK_DT)) - 1))
+            steps = int(catch_up_steps(int(round((t - self._last_t) / TICK_DT)) - 1))
         self._last_t = t
-        method = self._method
-        for _ in range(steps):
-            method.step(self._state, u, method.params, self.profile.vehicle, TICK_DT, out)
-        self._supervise(u, self._required, out)
+        self._pipeline.tick(self._state, u, out, steps)
         status = int(out[Out.STATUS])
         return Output(t, float(out[Out.BETA]), float(out[Out.BETA_RATE]), float(out[Out.VX]),
                       float(out[Out.VY]), float(out[Out.MU]), float(out[Out.SIGMA_BETA]),

@@ -1,7 +1,7 @@
 """Where numba caches slipd's compiled kernels: ``<base>/<hash of slipd's sources>``.
 
 Numba keys a cached kernel on its own file's timestamp only, so a kernel that inlines a
-function of another module (every estimator calls slipd.estimators.preprocess; the ensemble
+function of another module (every estimator calls slipd.estimators.common; the ensemble
 links all its members) kept its stale machine code when only that other module changed
 (measured: an edit to carnier.py did not reach hybrid_friction.step until the cache was
 deleted). On a car that is an upgrade away from running old code silently. A directory per

@@ -26,7 +26,7 @@ import numpy as np
 from numba.core.registry import cpu_target
 from numba.core.runtime import rtsys
 from slipd.channels import N_OUT
-from slipd.estimators import base
+from slipd.estimators import registry
 
 U = np.load(sys.argv[1])
 vehicle = np.load(sys.argv[2])
@@ -35,7 +35,7 @@ OUT = np.zeros((U.shape[0], N_OUT))
 rtsys.initialize(cpu_target.target_context)
 counts = {}
 for name in sys.argv[3:]:
-    method = base.load(name)
+    method = registry.load(name)
     state = method.init(vehicle)
 
     def allocations(a, b):

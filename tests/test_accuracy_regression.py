@@ -104,7 +104,7 @@ def blocks(tmp_path_factory) -> dict[str, list[LogCase]]:
 
 @pytest.fixture(scope="module")
 def figures(blocks) -> dict[tuple[str, str], tuple[float, float]]:
-    from slipd.estimators.base import available
+    from slipd.estimators.registry import available
     from slipd.profile import load_profile
 
     methods = available()

@@ -26,7 +26,6 @@ from slipd.codec import Codec
 from slipd.daemon.loop import Daemon, DaemonConfig
 from slipd.daemon.service import RealtimeOptions, StateStore
 from slipd.daemon.stats import Stats, StatsServer, query
-from slipd.estimators.preprocess import Offsets
 from slipd.profile import load_profile
 from slipd.replay.candump import FLAG_TX, read_candump
 from slipd.replay.engine import latch_log_or_recording, run_method
@@ -117,7 +116,7 @@ def _run(tmp_path, channel, seconds, estimator="zero", spin_us=0, stall_s=0.0, *
 def test_state_frames_at_100_hz_and_recorder_replays_byte_for_byte(tmp_path, estimator,
                                                                    spin_us, stall_s):
     """With a spin window, the dry run of each tick before it must leave no trace; after a
-    stall, the ticks the daemon skipped are stepped at the next one (base.catch_up_steps),
+    stall, the ticks the daemon skipped are stepped at the next one (pipeline.catch_up_steps),
     and the replay of the recording does the same: the frames still equal a batch replay."""
     daemon, final, received, snapshots = _run(tmp_path, f"d-equiv-{spin_us}-{stall_s}", 2.0,
                                               estimator, spin_us, stall_s)
@@ -197,13 +196,36 @@ def test_input_timeout_sets_status_within_three_ticks_and_recovers(tmp_path):
 def test_state_store_survives_a_corrupt_file(tmp_path):
     store = StateStore(tmp_path / "state.json")
     (tmp_path / "state.json").write_text("{not json")
-    values, message = store.load("kinematic_heuristic", 10)
+    values, message = store.load("kinematic_heuristic", "abc")
     assert values == {} and "corrupt" in message
-    store.save("kinematic_heuristic", np.arange(10.0), (2, 3))
-    values, message = store.load("kinematic_heuristic", 10)
-    assert values == {2: 2.0, 3: 3.0}
+    store.save("kinematic_heuristic", "abc", {"OFFSETS.AX": 2.0, "OFFSETS.AY": 3.0})
+    values, message = store.load("kinematic_heuristic", "abc")
+    assert values == {"OFFSETS.AX": 2.0, "OFFSETS.AY": 3.0}
     assert json.loads((tmp_path / "state.json").read_text())["method"] == "kinematic_heuristic"
-    assert store.load("dk_ekf", 10)[0] == {}
+    assert store.load("dk_ekf", "abc")[0] == {}
+
+
+def test_a_state_saved_under_another_layout_is_reported_and_ignored(tmp_path):
+    """Values persist by slot name with the layout's hash: a file from a slipd whose state
+    layout differs (or an older, index-keyed file) restores nothing and says why."""
+    path = tmp_path / "state.json"
+    store = StateStore(path)
+    store.save("kinematic_heuristic", "old-layout", {"OFFSETS.AX": 0.2})
+    values, message = store.load("kinematic_heuristic", "new-layout")
+    assert values == {} and "layout" in message and "ignored" in message
+    path.write_text(json.dumps({"method": "kinematic_heuristic", "state": {"17": 0.1}}))
+    values, message = store.load("kinematic_heuristic", "new-layout")
+    assert values == {} and "ignored" in message
+    config = DaemonConfig(profile=PROFILE, estimator="kinematic_heuristic", interface="virtual",
+                          channel="layout-mismatch", state_file=path)
+    daemon = Daemon(config, bus=can.Bus(interface="virtual", channel="layout-mismatch"),
+                    log=lambda *_: None)
+    try:
+        before = daemon.state.copy()
+        assert "ignored" in daemon.restore_state()
+        assert np.array_equal(daemon.state, before, equal_nan=True)
+    finally:
+        daemon.bus.shutdown()
 
 
 def test_prometheus_endpoint_never_waits_for_a_slow_client():
@@ -244,7 +266,7 @@ def test_sigterm_saves_learned_offsets_and_a_restart_restores_them(tmp_path):
     daemon = Daemon(config, bus=can.Bus(interface="virtual", channel=channel),
                     log=lambda *_: None)
     gyro_offset = 0.02  # rad/s on the yaw gyro of a car standing still
-    yaw_slot = daemon.persistent[0] + Offsets.YAW_RATE
+    yaw_slot = daemon.pipeline.persistent_slots["OFFSETS.YAW_RATE"]
 
     def stand_still_then_sigterm():
         daemon.ready.wait(60)
@@ -277,7 +299,8 @@ def test_sigterm_saves_learned_offsets_and_a_restart_restores_them(tmp_path):
     assert 0.0 < learned < gyro_offset  # learning towards the offset (150 s settling)
     saved = json.loads((tmp_path / "state.json").read_text())
     assert saved["method"] == "kinematic_heuristic"
-    assert saved["state"][str(yaw_slot)] == learned
+    assert saved["layout"] == daemon.pipeline.layout.hash
+    assert saved["state"]["OFFSETS.YAW_RATE"] == learned
 
     messages = []
     restarted = Daemon(config, bus=can.Bus(interface="virtual", channel=channel),
@@ -332,17 +355,17 @@ import sys
 from slipd.commands.run import _skip_numba_blas_probe
 _skip_numba_blas_probe()
 from slipd.daemon.loop import Daemon, DaemonConfig
-from slipd.estimators import base
+from slipd.estimators import registry
 from slipd.profile import load_profile
 from numba.np import arraymath
 
 profile = load_profile("default")
-for name in base.available():
+for name in registry.available():
     daemon = Daemon(DaemonConfig(profile=profile, estimator=name, interface="virtual",
                                  channel="blas-probe"), log=lambda *_: None)
     daemon.warm_up()
     daemon.bus.shutdown()
-print(len(base.available()), arraymath._HAVE_BLAS, "scipy.linalg" in sys.modules)
+print(len(registry.available()), arraymath._HAVE_BLAS, "scipy.linalg" in sys.modules)
 """
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                             timeout=900)
@@ -389,15 +412,15 @@ def test_a_deadline_miss_is_logged_with_its_cause_at_most_once_a_second():
 
 
 def test_a_tick_after_skipped_ticks_steps_once_per_elapsed_tick():
-    """Batch side of base.catch_up_steps: a recording's tick gaps become repeated steps on
+    """Batch side of pipeline.catch_up_steps: a recording's tick gaps become repeated steps on
     the later tick's inputs, and only the last step's output is that tick's."""
+    from slipd import pipeline
     from slipd.channels import N_IN, U_LEN, VALID
-    from slipd.estimators import base
     from slipd.replay.engine import Inputs
 
     tick_time = 100.0 + 0.01 * np.array([1, 2, 5, 6, 206], dtype=np.float64)
-    steps = base.steps_per_tick(tick_time, 0.01)
-    assert steps.tolist() == [1, 1, 3, 1, 1 + base.MAX_CATCH_UP_TICKS]
+    steps = pipeline.steps_per_tick(tick_time, 0.01)
+    assert steps.tolist() == [1, 1, 3, 1, 1 + pipeline.MAX_CATCH_UP_TICKS]
     rng = np.random.default_rng(3)
     U = np.zeros((len(tick_time), U_LEN))
     U[:, :N_IN] = rng.normal(0.0, 0.5, (len(tick_time), N_IN))

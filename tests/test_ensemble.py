@@ -31,8 +31,8 @@ from slipd.channels import (
     In,
     Out,
 )
-from slipd.estimators import base
 from slipd.estimators import ensemble as ens
+from slipd.estimators import registry
 from slipd.estimators.ensemble import FUSION_PARAMS, MEMBERS, N_MEMBERS, F
 from slipd.profile import load_profile
 
@@ -99,7 +99,7 @@ SIGMAS_DEG = [0.1, 0.2, 0.3, 0.5, 1.0, 2.0, 0.15]
 
 
 def test_weights_converge_to_inverse_variance_weights(vehicle):
-    params = base.make_params(ens, {"time_constant": 30.0})
+    params = registry.make_params(ens, {"time_constant": 30.0})
     n = 40000
     W, fused_err, member_err, out = synthetic_run(SIGMAS_DEG, n, params, vehicle)
     floor = params[FUSION_PARAMS.SIGMA_FLOOR] ** 2
@@ -127,7 +127,7 @@ def min_variance_weights(P: np.ndarray) -> np.ndarray:
 def test_family_common_error_is_identified_and_does_not_out_vote(vehicle):
     """dk_ekf, d_ekf, k_kf share a 1 deg error on top of small own errors: independent members
     would make them look best (their differences are small); the family term finds C_f."""
-    params = base.make_params(ens, {"time_constant": 30.0})
+    params = registry.make_params(ens, {"time_constant": 30.0})
     floor = params[FUSION_PARAMS.SIGMA_FLOOR] ** 2
     own_deg = np.array([1.0, 0.05, 0.08, 0.1, 0.3, 0.5, 0.8])
     common_deg = 1.0
@@ -161,13 +161,13 @@ def test_family_common_error_is_identified_and_does_not_out_vote(vehicle):
 
 
 def test_equal_members_get_equal_weights(vehicle):
-    params = base.make_params(ens, {"time_constant": 30.0})
+    params = registry.make_params(ens, {"time_constant": 30.0})
     W, *_ = synthetic_run([0.3] * N_MEMBERS, 20000, params, vehicle, seed=3)
     np.testing.assert_allclose(W[10000:].mean(axis=0), 1.0 / N_MEMBERS, rtol=0.1)
 
 
 def test_a_member_that_goes_bad_loses_its_weight(vehicle):
-    params = base.make_params(ens)  # default forgetting (2 s)
+    params = registry.make_params(ens)  # default forgetting (2 s)
     n, k_bad = 6000, 3000
     W, fused_err, *_ = synthetic_run(SIGMAS_DEG, n, params, vehicle, seed=1,
                                      bias_from=k_bad, bias_deg=3.0)  # fmt: skip
@@ -183,7 +183,7 @@ def test_a_member_that_goes_bad_loses_its_weight(vehicle):
     "bad_status", [ST_UNAVAILABLE, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET]
 )
 def test_excluded_status_gets_zero_weight_that_tick(bad_status, vehicle):
-    params = base.make_params(ens)
+    params = registry.make_params(ens)
     state = ens.init(params, vehicle)
     u = all_valid_u()
     out = np.zeros(N_OUT)
@@ -209,7 +209,7 @@ def test_excluded_status_gets_zero_weight_that_tick(bad_status, vehicle):
 
 
 def test_non_finite_output_and_missing_required_input_get_zero_weight(vehicle):
-    params = base.make_params(ens)
+    params = registry.make_params(ens)
     state = ens.init(params, vehicle)
     u = all_valid_u()
     out = np.zeros(N_OUT)
@@ -230,7 +230,7 @@ def test_non_finite_output_and_missing_required_input_get_zero_weight(vehicle):
 
 
 def test_outputs_are_consistent_and_mu_comes_from_the_members_that_estimate_it(vehicle):
-    params = base.make_params(ens)
+    params = registry.make_params(ens)
     state = ens.init(params, vehicle)
     u = all_valid_u()
     out = np.zeros(N_OUT)
@@ -253,7 +253,7 @@ def test_outputs_are_consistent_and_mu_comes_from_the_members_that_estimate_it(v
 
 
 def test_start_up_uses_the_own_sigmas_and_says_not_converged(vehicle):
-    params = base.make_params(ens)
+    params = registry.make_params(ens)
     state = ens.init(params, vehicle)
     u = all_valid_u()
     out = np.zeros(N_OUT)
@@ -274,21 +274,21 @@ def test_start_up_uses_the_own_sigmas_and_says_not_converged(vehicle):
 
 
 def test_registry_and_params_layout(vehicle):
-    assert base.available()[-1] == "ensemble"  # append-only: the index is the bus estimator id
-    method = base.load("ensemble", {"dk_ekf__min_speed": 7.5, "time_constant": 3.0})
+    assert registry.available()[-1] == "ensemble"  # append-only: the index is the bus estimator id
+    method = registry.load("ensemble", {"dk_ekf__min_speed": 7.5, "time_constant": 3.0})
     assert method.params[FUSION_PARAMS.TIME_CONSTANT] == 3.0
     for name in MEMBERS:
-        module = base.load(name).module
+        module = registry.load(name).module
         own = ens.member_params(method.params, name)
-        expected = base.make_params(module, {"min_speed": 7.5} if name == "dk_ekf" else None)
+        expected = registry.make_params(module, {"min_speed": 7.5} if name == "dk_ekf" else None)
         np.testing.assert_array_equal(own, expected)
     state = method.init(vehicle)
     bounds = state[F.STATE_BOUNDS : F.STATE_BOUNDS + N_MEMBERS + 1].astype(int)
-    assert bounds[0] == F.END and bounds[-1] == len(state)
+    assert bounds[0] == F[MEMBERS[0].upper()] and bounds[-1] == len(state) == ens.LAYOUT.size
     for m, name in enumerate(MEMBERS):
-        mod = base.load(name)
+        mod = registry.load(name)
         np.testing.assert_array_equal(state[bounds[m] : bounds[m + 1]], mod.init(vehicle))
-    for name in ("zero", "pseudo_fusion_kbe", "hybrid_friction_nocls", "ensemble"):
+    for name in ("zero", "linear_kf", "pseudo_fusion_kbe", "hybrid_friction_nocls", "ensemble"):
         assert name not in MEMBERS
 
 
@@ -302,7 +302,7 @@ def simulated_drive():
 
 def test_ensemble_on_the_simulator_runs_each_member_as_alone(simulated_drive, vehicle):
     truth, U = simulated_drive
-    method = base.load("ensemble")
+    method = registry.load("ensemble")
     state = method.init(vehicle)
     OUT = np.zeros((U.shape[0], N_OUT))
     method.run_ticks(state, U, method.params, vehicle, DT, OUT)
@@ -315,7 +315,7 @@ def test_ensemble_on_the_simulator_runs_each_member_as_alone(simulated_drive, ve
     # each member inside the ensemble computes exactly what it computes alone
     bounds = state[F.STATE_BOUNDS : F.STATE_BOUNDS + N_MEMBERS + 1].astype(int)
     for m, name in enumerate(MEMBERS):
-        alone = base.load(name)
+        alone = registry.load(name)
         own_state = alone.init(vehicle)
         own_out = np.zeros((U.shape[0], N_OUT))
         alone.run_ticks(own_state, U, alone.params, vehicle, DT, own_out)
@@ -328,7 +328,7 @@ def test_ensemble_on_the_simulator_runs_each_member_as_alone(simulated_drive, ve
     rms = float(np.sqrt(np.mean((OUT[:n, Out.BETA] - truth["beta"][:n])[fast] ** 2)))
     member_rms = []
     for name in MEMBERS:
-        alone = base.load(name)
+        alone = registry.load(name)
         own_state = alone.init(vehicle)
         own_out = np.zeros((U.shape[0], N_OUT))
         alone.run_ticks(own_state, U, alone.params, vehicle, DT, own_out)
@@ -353,3 +353,103 @@ def test_step_allocates_nothing():
     ticks_10, ticks_many = allocations(["ensemble"], U, load_profile("default").vehicle)["ensemble"]
     # whatever the call itself costs (argument boxing), 2970 more ticks add nothing
     assert ticks_many == ticks_10
+
+
+# ---------------------------------------------------------------------------------------------
+# plain twin of error_covariance (the N-cornered hat with family terms, eq. 38)
+# ---------------------------------------------------------------------------------------------
+
+
+def plain_error_covariance(fused, moments, own, family, floor):
+    """The module docstring's model in numpy: P of the fused members, the weights of eq. 38
+    (negatives clipped) and w' P w. ``moments``: D_ij (N x N), ``own``: sigma_i^2."""
+    idx = [i for i in range(N_MEMBERS) if fused[i]]
+    n = len(idx)
+    unknown = {}
+    for f in sorted(set(family)):
+        inside = sum(family[i] == f for i in idx)
+        if inside >= 2 and n - inside >= 2:
+            unknown[f] = n + len(unknown)
+    common = dict.fromkeys(set(family), 0.0)
+    solved = False
+    theta = None
+    if n >= 3:
+        A = np.zeros((n + len(unknown), n + len(unknown)))
+        b = np.zeros(n + len(unknown))
+        for p in range(n):
+            for q in range(p + 1, n):
+                i, j = idx[p], idx[q]
+                a = np.zeros(n + len(unknown))
+                a[p] = a[q] = 1.0
+                if family[i] != family[j]:
+                    for f in (family[i], family[j]):
+                        if f in unknown:
+                            a[unknown[f]] += 1.0
+                d = moments[i, j]
+                weight = 1.0 / (d + floor) ** 2
+                A += weight * np.outer(a, a)
+                b += weight * a * d
+        try:
+            np.linalg.cholesky(A)
+            theta = np.linalg.solve(A, b)
+            solved = True
+        except np.linalg.LinAlgError:
+            solved = False
+        if solved:
+            for f, k in unknown.items():
+                common[f] = max(theta[k], 0.0)
+    variance = np.full(N_MEMBERS, np.nan)
+    for p, i in enumerate(idx):
+        if solved:
+            hat = max(theta[p], 0.0) + common[family[i]]
+        elif n == 2:
+            other = idx[1 - p]
+            total = own[i] + own[other]
+            hat = (own[i] / total if total > 0 else 0.5) * moments[i, other]
+        else:
+            hat = own[i]
+        variance[i] = max(hat, own[i]) + floor
+    P = np.array([[variance[i] if i == j else (common[family[i]] if family[i] == family[j]
+                   else 0.0) for j in idx] for i in idx])
+    x = np.linalg.solve(P, np.ones(n))
+    w_fused = np.where(x > 0, x, 0.0) / np.where(x > 0, x, 0.0).sum()
+    w = np.zeros(N_MEMBERS)
+    w[idx] = w_fused
+    return w, variance, common, float(w_fused @ P @ w_fused)
+
+
+#: fused-member masks beside the random ones: one member, two (the split by own variance),
+#: a family and one other (C_f not identifiable), everything
+MASKS = ((0, 0, 0, 0, 0, 1, 0), (1, 0, 0, 0, 1, 0, 0), (0, 1, 1, 0, 0, 0, 1), (1,) * N_MEMBERS)
+
+
+@pytest.mark.parametrize("seed", range(12 + len(MASKS)))
+def test_error_covariance_agrees_with_its_plain_twin(seed, vehicle):
+    rng = np.random.default_rng(seed)
+    params = registry.make_params(ens)
+    state = ens.init(params, vehicle)
+    fused = rng.random(N_MEMBERS) < 0.85
+    if seed >= 12:
+        fused = np.array(MASKS[seed - 12], dtype=bool)
+    sigma = np.radians(rng.uniform(0.05, 2.0, N_MEMBERS))
+    moments = np.zeros((N_MEMBERS, N_MEMBERS))
+    for i in range(N_MEMBERS):
+        for j in range(i + 1, N_MEMBERS):
+            moments[i, j] = moments[j, i] = sigma[i] ** 2 + sigma[j] ** 2 * rng.uniform(0.5, 2)
+    own = np.radians(rng.uniform(0.01, 0.5, N_MEMBERS)) ** 2
+    for m in range(N_MEMBERS):
+        state[F.FUSED + m] = float(fused[m])
+        set_member(state, m, 0.0, sigma=math.sqrt(own[m]))
+        for j in range(N_MEMBERS):
+            state[F.MOMENT + m * N_MEMBERS + j] = moments[m, j]
+            state[F.MASS + m * N_MEMBERS + j] = 1.0
+    floor = params[FUSION_PARAMS.SIGMA_FLOOR] ** 2
+    n, variance = ens.error_covariance(state, floor)
+    w, var_ii, common, fused_variance = plain_error_covariance(fused, moments, own, ens.FAMILY,
+                                                               floor)
+    assert n == fused.sum()
+    np.testing.assert_allclose(weights(state), w, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(state[F.VARIANCE : F.VARIANCE + N_MEMBERS], var_ii, rtol=1e-8)
+    for f, value in common.items():
+        assert state[F.COMMON + f] == pytest.approx(value, rel=1e-8, abs=1e-18)
+    assert variance == pytest.approx(fused_variance, rel=1e-8)

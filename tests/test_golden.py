@@ -11,11 +11,11 @@ changed, dump the outputs before and compare after::
     SLIPD_GOLDEN_DUMP=/tmp/before .venv/bin/pytest tests/test_golden.py      # on the old code
     SLIPD_GOLDEN_COMPARE=/tmp/before .venv/bin/pytest tests/test_golden.py   # on the new code
 
-What is hashed: the float64 bits of each method's supervised outputs (the batch engine's
-``run_method``: every Out column incl. status), with every NaN mapped to one NaN and -0.0 to
-0.0 (a NaN's payload and a zero's sign change no frame on the bus). The latched inputs of each
-drive are hashed too, so a failure says whether the simulator or codec moved (``inputs``) or
-an estimator did. The values hold for this project's toolchain (numba with
+What is hashed: the float64 bits of each method's supervised outputs (``Pipeline.run``, as
+the batch engine runs it: every Out column incl. status), with every NaN mapped to one NaN
+and -0.0 to 0.0 (a NaN's payload and a zero's sign change no frame on the bus). The latched
+inputs of each drive are hashed too, so a failure says whether the simulator or codec moved
+(``inputs``) or an estimator did. The values hold for this project's toolchain (numba with
 NUMBA_CPU_NAME=generic, the pinned simulator); another libm may round a transcendental
 function differently.
 """
@@ -55,10 +55,11 @@ def fingerprint(out: np.ndarray) -> dict:
 
 
 def method_outputs(drive, profile) -> dict[str, np.ndarray]:
-    from slipd.estimators.base import available
-    from slipd.replay.engine import run_method
+    from slipd.estimators.registry import available
+    from slipd.pipeline import Pipeline
 
-    return {name: run_method(drive.inputs, profile, name).out for name in available()}
+    return {name: Pipeline(name, profile).run(drive.inputs.U, drive.inputs.steps)
+            for name in available()}
 
 
 def current_values(codec_drives, profile) -> tuple[dict, dict]:

@@ -35,9 +35,10 @@ from slipd.channels import (
     Out,
     Veh,
 )
-from slipd.estimators import base, carnier, hybrid_friction, hybrid_friction_nocls
-from slipd.estimators.carnier import S
-from slipd.estimators.hybrid_friction import PARAMS
+from slipd.estimators import registry
+from slipd.estimators.carnier2023 import classifier, hybrid_friction, observer
+from slipd.estimators.carnier2023.hybrid_friction import PARAMS
+from slipd.estimators.carnier2023.observer import S, Tyre
 from slipd.profile import load_profile
 
 DT = 0.01
@@ -60,14 +61,14 @@ def vehicle() -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def params() -> np.ndarray:
-    return base.make_params(hybrid_friction)
+    return registry.make_params(hybrid_friction)
 
 
-def run(module, U: np.ndarray, vehicle: np.ndarray, overrides: dict | None = None):
-    params = base.make_params(module, overrides)
-    state = module.init(params, vehicle)
+def run(name: str, U: np.ndarray, vehicle: np.ndarray, overrides: dict | None = None):
+    method = registry.load(name, overrides)
+    state = method.init(vehicle)
     OUT = np.zeros((U.shape[0], N_OUT))
-    module.run_ticks(state, U, params, vehicle, DT, OUT)
+    method.run_ticks(state, U, method.params, vehicle, DT, OUT)
     return OUT, state
 
 
@@ -96,10 +97,10 @@ def cornering_ticks(n: int, speed: float = 15.0, ay: float = 3.0, seed: int = 0)
 
 
 def test_registry_loads_both_variants_on_one_kernel():
-    full = base.load("hybrid_friction")
-    bare = base.load("hybrid_friction_nocls")
-    assert full.module is hybrid_friction and bare.module is hybrid_friction_nocls
-    assert bare.module.step is full.module.step and bare.module.run_ticks is full.module.run_ticks
+    full = registry.load("hybrid_friction")
+    bare = registry.load("hybrid_friction_nocls")
+    assert full.module is hybrid_friction and bare.module is hybrid_friction
+    assert dict(bare.spec.overrides) == {"classifier_enabled": 0.0}
     assert full.params[PARAMS.CLASSIFIER_ENABLED] == 1.0
     assert bare.params[PARAMS.CLASSIFIER_ENABLED] == 0.0
     # Table 1
@@ -116,25 +117,26 @@ def test_reference_tyre_reproduces_both_reference_characteristics(vehicle, param
     mu_high, mu_low = vehicle[Veh.MU_NOMINAL], params[PARAMS.MU_LOW]
     wheelbase = vehicle[Veh.LF] + vehicle[Veh.LR]
     fz_front = vehicle[Veh.MASS] * G * vehicle[Veh.LR] / wheelbase
-    coef = state[S.TYRE_A_CF : S.TYRE_A_CF + 4]
+    coef = state[S.TYRE : S.TYRE + 4]
     for mu in (mu_high, mu_low):
-        c_r, k = carnier.tyre_coefficients(mu, *coef, 1.0)
-        assert carnier.tyre_force(1e-5, c_r, k)[1] == pytest.approx(
+        c_r, k = observer.tyre_coefficients(mu, *coef, 1.0)
+        assert observer.tyre_force(1e-5, c_r, k)[1] == pytest.approx(
             vehicle[Veh.CORNERING_STIFFNESS_F], rel=1e-6
         )
-        assert carnier.tyre_force(1.0, c_r, k)[0] == pytest.approx(mu * fz_front, rel=1e-6)
+        assert observer.tyre_force(1.0, c_r, k)[0] == pytest.approx(mu * fz_front, rel=1e-6)
     # the saturation moves to smaller slip at low friction (Fig. 8)
     assert (
-        carnier.tyre_coefficients(mu_low, *coef, 1.0)[1]
-        > 3 * carnier.tyre_coefficients(mu_high, *coef, 1.0)[1]
+        observer.tyre_coefficients(mu_low, *coef, 1.0)[1]
+        > 3 * observer.tyre_coefficients(mu_high, *coef, 1.0)[1]
     )
 
 
 def test_explicit_tyre_coefficients_override_the_derived_ones(vehicle):
-    params = base.make_params(hybrid_friction, {"tyre_a_kf": -44.0, "tyre_b_kf": 57.0})
+    params = registry.make_params(hybrid_friction, {"tyre_a_kf": -44.0, "tyre_b_kf": 57.0})
     state = hybrid_friction.init(params, vehicle)
-    assert state[S.TYRE_A_KF] == -44.0 and state[S.TYRE_B_KF] == 57.0
-    assert state[S.TYRE_B_CF] == pytest.approx(vehicle[Veh.CORNERING_STIFFNESS_F])
+    tyre = S.TYRE
+    assert state[tyre + Tyre.A_KF] == -44.0 and state[tyre + Tyre.B_KF] == 57.0
+    assert state[tyre + Tyre.B_CF] == pytest.approx(vehicle[Veh.CORNERING_STIFFNESS_F])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -179,8 +181,8 @@ VX_CASES = [
 @pytest.mark.parametrize("case", VX_CASES)
 def test_vx_tilde_matches_numpy_reference(case, vehicle):
     speeds, ok, ax, ay = case
-    state = carnier.new_state(1.0, True)
-    vx, n_valid = carnier.vx_from_wheels_lt(
+    state = observer.new_state(1.0, True)
+    vx, n_valid = observer.vx_from_wheels_lt(
         state, *speeds, *(bool(o) for o in ok), ax, ay, vehicle, 35.0 * DEG, 35.0 * DEG, 0.5, 1.5
     )
     assert n_valid == sum(ok)
@@ -188,23 +190,23 @@ def test_vx_tilde_matches_numpy_reference(case, vehicle):
 
 
 def test_vx_tilde_discards_a_spinning_wheel_and_weights_the_loaded_axle(vehicle):
-    state = carnier.new_state(1.0, True)
+    state = observer.new_state(1.0, True)
     # braking (Fig. 5): the load moves to the front, only the front wheels have k_w = 1
-    assert carnier.load_transfer_weight(1.2, 0.7, math.atan2(0.0, 6.0), 35 * DEG, 35 * DEG) == 1.0
-    assert carnier.load_transfer_weight(-1.4, 0.7, math.atan2(0.0, 6.0), 35 * DEG, 35 * DEG) == 0.0
+    assert observer.load_transfer_weight(1.2, 0.7, math.atan2(0.0, 6.0), 35 * DEG, 35 * DEG) == 1.0
+    assert observer.load_transfer_weight(-1.4, 0.7, math.atan2(0.0, 6.0), 35 * DEG, 35 * DEG) == 0.0
     # one rear wheel spinning 5 m/s fast while accelerating: eq. 4 takes the slowest survivor
-    vx, _ = carnier.vx_from_wheels_lt(state, 20.0, 20.02, 25.0, 20.01, True, True, True, True,
+    vx, _ = observer.vx_from_wheels_lt(state, 20.0, 20.02, 25.0, 20.01, True, True, True, True,
                                       2.0, 0.0, vehicle, 35 * DEG, 35 * DEG, 0.5, 1.5)  # fmt: skip
     assert vx == pytest.approx(20.0)
-    assert carnier.vx_from_wheels_lt(state, 0.0, 0.0, 0.0, 0.0, False, False, False, False,
+    assert observer.vx_from_wheels_lt(state, 0.0, 0.0, 0.0, 0.0, False, False, False, False,
                                      0.0, 0.0, vehicle, 0.6, 0.6, 0.5, 1.5)[1] == 0  # fmt: skip
 
 
 def test_kx_is_scheduled_on_the_wheel_acceleration_mismatch():
     """eq. 5-6: wheels whose rates disagree with A_x (slip) switch K_x to K_x,min."""
-    kx, delta = carnier.kx_gain(1.0, 1.1, 0.9, 1.0, True, True, True, True, 1.0, 8.0, 0.2, 5.0)
+    kx, delta = observer.kx_gain(1.0, 1.1, 0.9, 1.0, True, True, True, True, 1.0, 8.0, 0.2, 5.0)
     assert kx == 5.0 and delta == pytest.approx(0.2)
-    kx, delta = carnier.kx_gain(1.0, 1.0, 9.0, 8.0, True, True, True, True, 1.0, 8.0, 0.2, 5.0)
+    kx, delta = observer.kx_gain(1.0, 1.0, 9.0, 8.0, True, True, True, True, 1.0, 8.0, 0.2, 5.0)
     assert kx == 0.2 and delta == pytest.approx(15.0)
 
 
@@ -224,7 +226,7 @@ def ref_lateral(vx, vy, r, steer, mu, coef, veh):
 
 
 def ref_observer_step(x, u, p, veh, coef, dt):
-    """eq. 2 by forward Euler with the gains of eq. 11-15 as documented in carnier."""
+    """eq. 2 by forward Euler with the gains of eq. 11-15 as documented in observer."""
     vx, vy, mu, mu_bar, lowpass = x
     ax, ay, r, steer, vx_tilde, kx = u
     mu_nom = veh[Veh.MU_NOMINAL]
@@ -252,9 +254,9 @@ def ref_observer_step(x, u, p, veh, coef, dt):
 
 def test_lateral_model_matches_python_reference(vehicle, params):
     state = hybrid_friction.init(params, vehicle)
-    coef = state[S.TYRE_A_CF : S.TYRE_B_KR + 1]
+    coef = state[S.TYRE : S.TYRE + 8]
     for vx, vy, r, steer, mu in ((16.0, 0.1, 0.39, 0.064, 1.0), (9.0, -1.0, 0.5, 0.13, 0.4)):
-        ay_hat, slope, _, _ = carnier.lateral_model(vx, vy, r, steer, mu, state, vehicle, 1.0)
+        ay_hat, slope, _, _ = observer.lateral_model(vx, vy, r, steer, mu, state, vehicle, 1.0)
         assert ay_hat == pytest.approx(ref_lateral(vx, vy, r, steer, mu, coef, vehicle), rel=1e-12)
         eps = 1e-6
         numeric = (
@@ -281,8 +283,8 @@ def test_observer_step_matches_python_reference(case, xi_floor, vehicle, params)
     state = hybrid_friction.init(params, vehicle)
     state[[S.VX, S.VY, S.MU, S.MU_DEFAULT, S.BETA_RATE_LOWPASS]] = vx, vy, mu, 1.0, lowpass
     state[S.AY_UTILISATION] = 0.0  # floor inactive for this comparison
-    coef = state[S.TYRE_A_CF : S.TYRE_B_KR + 1].copy()
-    carnier.observer_step(
+    coef = state[S.TYRE : S.TYRE + 8].copy()
+    observer.observer_step(
         state, ax, ay, True, r, steer, vx_tilde, True, 5.0, vehicle, DT,
         p["ky_min"], p["ky_max"], p["beta_rate_threshold"], p["k_mu"], p["k_mu_bar"],
         p["beta_rate_mu_threshold"], p["yaw_rate_mu_threshold"], 0.0, 10.0, 1.0, 1.0,
@@ -301,7 +303,7 @@ def test_vy_error_decays_at_k_y_in_the_linear_range(vehicle, params):
     state[[S.VX, S.VY, S.MU, S.MU_DEFAULT]] = 20.0, 0.05, vehicle[Veh.MU_NOMINAL], 1.0
     state[S.BETA_RATE_LOWPASS] = 0.0
     ay_true = 0.0  # straight, vy = 0: the true lateral acceleration is 0
-    carnier.observer_step(state, 0.0, ay_true, True, 0.0, 0.0, 20.0, True, 5.0, vehicle, DT,
+    observer.observer_step(state, 0.0, ay_true, True, 0.0, 0.0, 20.0, True, 5.0, vehicle, DT,
                           0.3, 10.0, 0.3 * DEG, 0.007, 0.08, 7 * DEG, 5 * DEG, 0.1, 1.3, 1.0,
                           1.0, 0.3, 0.0, 0.5)  # fmt: skip
     assert state[S.VY] == pytest.approx(0.05 * (1.0 - 10.0 * DT), rel=0.02)
@@ -314,7 +316,7 @@ def test_vy_error_decays_at_k_y_in_the_linear_range(vehicle, params):
 
 def test_burckhardt_dry_asphalt_peaks_near_1_17():
     slip = np.linspace(0.0, 1.0, 1001)
-    mu = [carnier.burckhardt(s, *carnier.BURCKHARDT_DRY_ASPHALT) for s in slip]
+    mu = [classifier.burckhardt(s, *classifier.BURCKHARDT_DRY_ASPHALT) for s in slip]
     assert max(mu) == pytest.approx(1.17, abs=0.01)
     assert slip[int(np.argmax(mu))] == pytest.approx(0.17, abs=0.02)
 
@@ -335,38 +337,38 @@ def test_burckhardt_dry_asphalt_peaks_near_1_17():
 )
 def test_map_regions(slip, mu, expected):
     high, low = 1.0, 0.3
-    assert carnier.map_region(slip, mu, high, low, 0.3, 3 * DEG, 0.15, 0.15, 0.15) == expected
+    assert classifier.map_region(slip, mu, high, low, 0.3, 3 * DEG, 0.15, 0.15, 0.15) == expected
 
 
 def test_map_is_white_where_the_curves_merge():
-    assert carnier.map_region(0.2, 0.2, 0.25, 0.2, 0.3, 0.05, 0.15, 0.15, 0.15) == 0
+    assert classifier.map_region(0.2, 0.2, 0.25, 0.2, 0.3, 0.05, 0.15, 0.15, 0.15) == 0
 
 
 def test_burckhardt_peak_is_the_curve_maximum():
-    for c in (carnier.BURCKHARDT_DRY_ASPHALT, carnier.BURCKHARDT_SNOW):
+    for c in (classifier.BURCKHARDT_DRY_ASPHALT, classifier.BURCKHARDT_SNOW):
         slip = np.linspace(0.0, 1.0, 100001)
         curve = c[0] * (1 - np.exp(-c[1] * slip)) - c[2] * slip
-        assert carnier.burckhardt_peak(*c) == pytest.approx(curve.max(), rel=1e-8)
+        assert classifier.burckhardt_peak(*c) == pytest.approx(curve.max(), rel=1e-8)
 
 
 def test_classifier_switches_after_persistence_and_reinitialises_mu():
-    state = carnier.new_state(1.05, True)
+    state = observer.new_state(1.05, True)
     for _ in range(4):
-        assert not carnier.classifier_update(state, False, True, 5.0, 1.05, 0.3)
-    assert carnier.classifier_update(state, False, True, 5.0, 1.05, 0.3)
+        assert not classifier.classifier_update(state, False, True, 5.0, 1.05, 0.3)
+    assert classifier.classifier_update(state, False, True, 5.0, 1.05, 0.3)
     assert state[S.CLASS_HIGH] == 0.0 and state[S.MU] == 0.3 and state[S.MU_DEFAULT] == 0.3
     # a high point interrupts a low streak; conflicting points count for neither
-    assert not carnier.classifier_update(state, True, True, 1.0, 1.05, 0.3)
-    assert carnier.classifier_update(state, True, False, 1.0, 1.05, 0.3)
+    assert not classifier.classifier_update(state, True, True, 1.0, 1.05, 0.3)
+    assert classifier.classifier_update(state, True, False, 1.0, 1.05, 0.3)
     assert state[S.MU] == 1.05 and state[S.DETECTIONS] == 2.0
 
 
 def test_wheel_loads_sum_to_the_weight_and_shift_with_acceleration(vehicle):
-    loads = np.array(carnier.wheel_loads(0.0, 0.0, vehicle))
+    loads = np.array(classifier.wheel_loads(0.0, 0.0, vehicle))
     assert loads.sum() == pytest.approx(vehicle[Veh.MASS] * G)
-    braking = np.array(carnier.wheel_loads(-5.0, 0.0, vehicle))
+    braking = np.array(classifier.wheel_loads(-5.0, 0.0, vehicle))
     assert braking[:2].sum() > loads[:2].sum() and braking.sum() == pytest.approx(loads.sum())
-    left_turn = np.array(carnier.wheel_loads(0.0, 5.0, vehicle))  # ISO: loads the right wheels
+    left_turn = np.array(classifier.wheel_loads(0.0, 5.0, vehicle))  # ISO: loads the right wheels
     assert left_turn[1] > left_turn[0] and left_turn[3] > left_turn[2]
 
 
@@ -375,14 +377,14 @@ def test_wheel_loads_sum_to_the_weight_and_shift_with_acceleration(vehicle):
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("module", [hybrid_friction, hybrid_friction_nocls])
-def test_outputs_complete_and_classes(module, vehicle):
-    OUT, _ = run(module, cornering_ticks(500), vehicle)
+@pytest.mark.parametrize("name", ["hybrid_friction", "hybrid_friction_nocls"])
+def test_outputs_complete_and_classes(name, vehicle):
+    OUT, _ = run(name, cornering_ticks(500), vehicle)
     assert np.all(np.isfinite(OUT[:, [Out.BETA, Out.BETA_RATE, Out.VX, Out.VY, Out.MU,
                                       Out.SIGMA_BETA, Out.ROLL, Out.STATUS]]))  # fmt: skip
     assert np.all(OUT[:100, Out.STATUS].astype(int) & ST_NOT_CONVERGED)
     assert np.all(OUT[-100:, Out.STATUS] == 0.0)
-    expected_class = 3.0 if module is hybrid_friction else 0.0  # dry start, no low evidence
+    expected_class = 3.0 if name == "hybrid_friction" else 0.0  # dry start, no low evidence
     assert np.all(OUT[:, Out.FRICTION_CLASS] == expected_class)
 
 
@@ -400,7 +402,7 @@ def test_invalid_and_non_finite_inputs_never_give_nan(vehicle):
     U[1000:1100, :12] = np.inf
     U[::7, In.ROLL_RATE] = np.nan
     U[::11, In.DRIVE_TORQUE_RL] = np.nan
-    OUT, state = run(hybrid_friction, U, vehicle)
+    OUT, state = run("hybrid_friction", U, vehicle)
     assert np.all(np.isfinite(OUT[:, [Out.BETA, Out.BETA_RATE, Out.VX, Out.VY, Out.MU,
                                       Out.SIGMA_BETA]]))  # fmt: skip
     assert np.all(np.isfinite(state[: S.DETECTIONS + 1]))
@@ -412,7 +414,7 @@ def test_invalid_and_non_finite_inputs_never_give_nan(vehicle):
 
 def test_non_finite_state_resets_and_says_so(vehicle):
     U = cornering_ticks(600)
-    params = base.make_params(hybrid_friction)
+    params = registry.make_params(hybrid_friction)
     state = hybrid_friction.init(params, vehicle)
     OUT = np.zeros((600, N_OUT))
     hybrid_friction.run_ticks(state, U[:300], params, vehicle, DT, OUT[:300])
@@ -434,7 +436,7 @@ def test_standstill_and_start_up(vehicle):
     U[:, In.AX] = np.where(speed > 0, 5.0, 0.0)
     for ch in WHEEL_SPEEDS:
         U[:, ch] = speed
-    OUT, _ = run(hybrid_friction, U, vehicle)
+    OUT, _ = run("hybrid_friction", U, vehicle)
     status = OUT[:, Out.STATUS].astype(int)
     assert np.all(status[:250] & ST_NOT_CONVERGED)
     assert np.all(OUT[:250, Out.BETA] == 0.0)
@@ -471,7 +473,7 @@ def simulated(scenario: str, seed: int = 0) -> tuple[dict, np.ndarray]:
 @functools.cache
 def outputs(name: str, scenario: str) -> tuple[np.ndarray, dict, int]:
     truth, U = simulated(scenario)
-    method = base.load(name)
+    method = registry.load(name)
     vehicle = load_vehicle()
     state = method.init(vehicle)
     OUT = np.zeros((U.shape[0], N_OUT))
@@ -577,7 +579,7 @@ def test_mu_jump_claims_hold_over_sensor_seeds():
         n = min(U.shape[0], truth["t"].size)
         keep = np.hypot(truth["vx"][:n], truth["vy"][:n]) > MIN_EVAL_SPEED
         for name in p99:
-            method = base.load(name)
+            method = registry.load(name)
             state = method.init(vehicle)
             OUT = np.zeros((U.shape[0], N_OUT))
             method.run_ticks(state, U, method.params, vehicle, DT, OUT)

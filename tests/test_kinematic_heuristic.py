@@ -32,8 +32,8 @@ from slipd.channels import (
     Out,
     Veh,
 )
-from slipd.estimators import kinematic_heuristic as kh
-from slipd.estimators.base import load, make_params
+from slipd.estimators.registry import load, make_params
+from slipd.estimators.selmanaj2017 import kinematic_heuristic as kh
 
 DT = 0.01
 REPO = Path(__file__).resolve().parents[1]
@@ -131,7 +131,7 @@ def _mean_f(U, overrides, vehicle) -> float:
     f = np.zeros(len(U))
     for k in range(len(U)):
         kh.run_ticks(state, U[k : k + 1], params, vehicle, DT, out)
-        f[k] = state[kh.State.F]
+        f[k] = state[kh.S.F]
     return float(np.mean(f[len(U) // 6 :]))
 
 
@@ -229,7 +229,7 @@ def test_steady_gain_zero_is_the_paper() -> None:
     state = kh.init(params, vehicle)
     OUT = np.zeros((U.shape[0], N_OUT))
     kh.run_ticks(state, U, params, vehicle, DT, OUT)
-    assert state[kh.State.STEADY] == 0.0 and state[kh.State.STEADY_BIAS] == 0.0
+    assert state[kh.S.STEADY] == 0.0 and state[kh.S.STEADY_BIAS] == 0.0
 
 
 def test_status_not_converged_at_start_then_clear() -> None:
@@ -289,7 +289,7 @@ def test_non_finite_state_resets_and_says_so() -> None:
     U = rigid_body_inputs(np.full_like(t, 10.0), zeros, zeros, zeros, vehicle)
     out = np.zeros(N_OUT)
     kh.step(state, U[0], params, vehicle, DT, out)
-    state[kh.State.VY_HAT] = np.nan
+    state[kh.S.VY_HAT] = np.nan
     kh.step(state, U[1], params, vehicle, DT, out)
     assert int(out[Out.STATUS]) & ST_RESET
     assert np.isfinite(out[Out.BETA]) and np.isfinite(out[Out.VX])
@@ -318,8 +318,8 @@ _ALLOC_SCRIPT = """
 import numpy as np
 from numba.core.runtime import rtsys
 from slipd.channels import N_OUT, U_LEN, VALID, N_IN, U_TIME, In, WHEEL_SPEEDS, N_VEH, Veh
-from slipd.estimators import kinematic_heuristic as kh
-from slipd.estimators.base import make_params
+from slipd.estimators.selmanaj2017 import kinematic_heuristic as kh
+from slipd.estimators.registry import make_params
 
 vehicle = np.zeros(N_VEH)
 vehicle[Veh.MASS], vehicle[Veh.H_ROLL_AXIS], vehicle[Veh.ROLL_STIFFNESS] = 1093.3, 0.57, 41780.0
@@ -373,8 +373,8 @@ def test_run_ticks_allocates_nothing_per_step() -> None:
 _CACHE_SCRIPT = """
 import numpy as np
 from slipd.channels import N_OUT, U_LEN, N_VEH
-from slipd.estimators import kinematic_heuristic as kh
-from slipd.estimators.base import make_params
+from slipd.estimators.selmanaj2017 import kinematic_heuristic as kh
+from slipd.estimators.registry import make_params
 
 params = make_params(kh)
 vehicle = np.zeros(N_VEH)
@@ -483,3 +483,46 @@ def test_no_nan_and_no_divergence_on_snow_drift() -> None:
     err, OUT = _beta_error_deg(_simulate("snow_drift"))
     assert np.all(np.isfinite(np.delete(OUT, Out.MU, axis=1)))
     assert np.max(np.abs(np.degrees(OUT[:, Out.BETA]))) < 90.0
+
+
+# ---------------------------------------------------------------------------------------------
+# plain twin of the observer's two stages (eq. 5 and F, eq. 6-7)
+# ---------------------------------------------------------------------------------------------
+
+
+def plain_heuristic(f_gain, signals, sigmas):
+    """F = F_gain prod_i exp(-(x_i^2 / s_i^2 + dx_i^2 / s_di^2) / 2), eq. 7 written out."""
+    value = f_gain
+    for (x, dx), (s, ds) in zip(signals, sigmas, strict=True):
+        value *= math.exp(-0.5 * ((x / s) ** 2 + (dx / ds) ** 2))
+    return value
+
+
+def plain_observer(x, vx_meas, have_vx, yaw_rate, ax, ay, a0, a1, a2, f, hold, hold_c):
+    """Eq. 5 in matrix form: x' = A(omega) x + [Ax, Ay] - K (x1 - Vx) with
+    A = [[0, omega], [-omega, -F]], K = [a0 + a1 |omega|, a2 omega] (0 without Vx), and the
+    steady-state extension scaling the open-loop lateral integrand and the a2 term."""
+    gains = np.array([a0 + a1 * abs(yaw_rate), a2 * yaw_rate]) if have_vx else np.zeros(2)
+    error = x[0] - vx_meas if have_vx else 0.0
+    x_dot = np.array([yaw_rate * x[1] + ax - gains[0] * error,
+                      (1 - hold) * (ay - yaw_rate * x[0]) - (1 - hold * hold_c) * gains[1] * error
+                      - f * x[1]])
+    return x_dot, gains[0]
+
+
+def test_the_heuristic_and_the_observer_agree_with_their_plain_twins():
+    rng = np.random.default_rng(17)
+    for _ in range(400):
+        signals = rng.normal(0.0, [0.1, 0.3, 0.05, 0.3, 0.04, 0.6]).reshape(3, 2)
+        sigmas = rng.uniform(0.05, 1.0, 6).reshape(3, 2)
+        f_gain = rng.uniform(0.0, 2.0)
+        f = kh.straight_heuristic(f_gain, *signals.ravel(), *sigmas.ravel())
+        assert f == pytest.approx(plain_heuristic(f_gain, signals, sigmas), rel=1e-12, abs=1e-300)
+        x = rng.normal([20.0, 0.0], [5.0, 1.0])
+        args = (rng.normal(20.0, 5.0), bool(rng.random() < 0.8), rng.normal(0.0, 0.3),
+                rng.normal(0.0, 2.0), rng.normal(0.0, 4.0), 10.0, 5.0, 10.0, f,
+                rng.uniform(0.0, 1.0), 0.5)
+        vx_dot, vy_dot, gain_x = kh.observer_derivatives(x[0], x[1], *args)
+        x_dot, gain_ref = plain_observer(x, *args)
+        np.testing.assert_allclose([vx_dot, vy_dot], x_dot, rtol=1e-12, atol=1e-12)
+        assert gain_x == pytest.approx(gain_ref, rel=1e-15)

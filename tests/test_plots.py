@@ -47,8 +47,8 @@ def test_suite_and_mismatch_write_heatmaps_and_pooled_cdfs(suite, tmp_path, caps
                  str(tmp_path / "x.gif")]) == 2
 
 
-def test_a_method_keeps_its_style_and_13_methods_are_distinct():
-    from slipd.estimators.base import available
+def test_a_method_keeps_its_style_and_the_registered_methods_are_distinct():
+    from slipd.estimators.registry import available
 
     names = available()
     looks = {(plots.style(n)["color"], plots.style(n)["linestyle"]) for n in names}

@@ -35,9 +35,11 @@ from slipd.channels import (
     Out,
     Veh,
 )
-from slipd.estimators import base, d_ekf, dk_ekf, k_kf
-from slipd.estimators import righetti_lenzo as rl
-from slipd.estimators.righetti_lenzo import S, default_vehicle
+from slipd.estimators import registry
+from slipd.estimators.common.tyres import tanh_tyre
+from slipd.estimators.righetti_lenzo2025 import d_ekf, dk_ekf, k_kf
+from slipd.estimators.righetti_lenzo2025 import filters as rl
+from slipd.estimators.righetti_lenzo2025.filters import S
 
 METHODS = {"dk_ekf": dk_ekf, "d_ekf": d_ekf, "k_kf": k_kf}
 #: The paper's own pre-processing (Sec. 3.1: planar CoG translation only). The synthetic plant
@@ -48,17 +50,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def load_vehicle() -> np.ndarray:
-    """The default profile's vehicle vector, or the BMW 320i numbers until the profile exists."""
-    try:
-        from slipd.profile import load_profile
-    except ImportError:
-        return rl.default_vehicle()
+    """The default profile's vehicle vector (the simulator's BMW 320i)."""
+    from slipd.profile import load_profile
+
     return np.asarray(load_profile("default").vehicle, dtype=np.float64)
-
-
-@pytest.fixture(scope="module")
-def vehicle() -> np.ndarray:
-    return load_vehicle()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -117,7 +112,7 @@ def cog_vehicle(vehicle: np.ndarray) -> np.ndarray:
 
 def run(module, U: np.ndarray, vehicle: np.ndarray, overrides: dict | None = None):
     """Run ``module`` over ``U`` with the paper's pre-processing (plus ``overrides``)."""
-    params = base.make_params(module, {**PAPER_PREPROCESSING, **(overrides or {})})
+    params = registry.make_params(module, {**PAPER_PREPROCESSING, **(overrides or {})})
     state = module.init(params, vehicle)
     OUT = np.zeros((U.shape[0], N_OUT))
     module.run_ticks(state, U, params, vehicle, DT, OUT)
@@ -182,33 +177,33 @@ def test_dynamic_ekf_matches_numpy_reference(case, vehicle):
     vy, r, vx, steer, p11, p12, p22, r_meas, ay_meas = case
     q = (3e-6, 1e-6)
     R = np.diag([4e-7, 6e-2])
-    state = np.zeros(rl.N_STATE)
-    state[[S.DYN_VY, S.DYN_R, S.DYN_P_VV, S.DYN_P_VR, S.DYN_P_RR]] = vy, r, p11, p12, p22
+    state = np.zeros(rl.LAYOUT.size)
+    state[[S.DYN_VY, S.DYN_R, S.DYN_P, S.DYN_P + 1, S.DYN_P + 2]] = vy, r, p11, p12, p22
     rl.dynamic_predict(state, vx, steer, vehicle, q[0], q[1], DT)
     x = np.array([vy, r])
     P = np.array([[p11, p12], [p12, p22]])
     f, J, _, _ = ref_model(x, vx, steer, vehicle)
     x, P = ref_predict(x, P, f, np.eye(2) + J * DT, np.diag(q), DT)
     np.testing.assert_allclose(state[[S.DYN_VY, S.DYN_R]], x, rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(sym(state, S.DYN_P_VV), P, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(sym(state, S.DYN_P), P, rtol=1e-12, atol=1e-18)
 
     rl.dynamic_update(state, r_meas, True, ay_meas, True, vx, steer, vehicle, R[0, 0], R[1, 1])
     _, _, h, H = ref_model(x, vx, steer, vehicle)
     x, P = ref_update(x, P, np.array([r_meas, ay_meas]), h, H, R)
     np.testing.assert_allclose(state[[S.DYN_VY, S.DYN_R]], x, rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(sym(state, S.DYN_P_VV), P, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(sym(state, S.DYN_P), P, rtol=1e-12, atol=1e-18)
 
 
 def test_dynamic_update_without_ay_is_the_scalar_yaw_rate_update(vehicle):
-    state = np.zeros(rl.N_STATE)
-    state[[S.DYN_VY, S.DYN_R, S.DYN_P_VV, S.DYN_P_VR, S.DYN_P_RR]] = 0.3, 0.2, 2e-3, 1e-4, 5e-4
+    state = np.zeros(rl.LAYOUT.size)
+    state[[S.DYN_VY, S.DYN_R, S.DYN_P, S.DYN_P + 1, S.DYN_P + 2]] = 0.3, 0.2, 2e-3, 1e-4, 5e-4
     rl.dynamic_update(state, 0.25, True, 99.0, False, 15.0, 0.03, vehicle, 4e-7, 6e-2)
     x = np.array([0.3, 0.2])
     P = np.array([[2e-3, 1e-4], [1e-4, 5e-4]])
     x, P = ref_update(x, P, np.array([0.25]), np.array([0.2]), np.array([[0.0, 1.0]]),
                       np.array([[4e-7]]))  # fmt: skip
     np.testing.assert_allclose(state[[S.DYN_VY, S.DYN_R]], x, rtol=1e-12)
-    np.testing.assert_allclose(sym(state, S.DYN_P_VV), P, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(sym(state, S.DYN_P), P, rtol=1e-12, atol=1e-18)
 
 
 @pytest.mark.parametrize("with_vy", [True, False])
@@ -217,8 +212,8 @@ def test_kinematic_kf_matches_numpy_reference(with_vy):
     ax, ay, yaw_rate = 0.4, 3.1, 0.17
     q = (5e-3, 1e-4)
     vx_meas, vy_dyn, r_vx, r_vy = 18.1, 0.62, 2e-3, 1e-3
-    state = np.zeros(rl.N_STATE)
-    state[[S.KIN_VX, S.KIN_VY, S.KIN_P_XX, S.KIN_P_XY, S.KIN_P_YY]] = vx, vy, p11, p12, p22
+    state = np.zeros(rl.LAYOUT.size)
+    state[[S.KIN_VX, S.KIN_VY, S.KIN_P, S.KIN_P + 1, S.KIN_P + 2]] = vx, vy, p11, p12, p22
     rl.kinematic_predict(state, ax, ay, yaw_rate, q[0], q[1], DT)
     rl.kinematic_update(state, vx_meas, True, r_vx, vy_dyn, with_vy, r_vy)
     # eq. 12-13: F_k = I + [[0, r], [-r, 0]] dt, G_k = I dt
@@ -231,7 +226,7 @@ def test_kinematic_kf_matches_numpy_reference(with_vy):
         H, y, R = np.array([[1.0, 0.0]]), np.array([vx_meas]), np.array([[r_vx]])
     x, P = ref_update(x, P, y, H @ x, H, R)
     np.testing.assert_allclose(state[[S.KIN_VX, S.KIN_VY]], x, rtol=1e-12)
-    np.testing.assert_allclose(sym(state, S.KIN_P_XX), P, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(sym(state, S.KIN_P), P, rtol=1e-12, atol=1e-18)
 
 
 @pytest.mark.parametrize("case", RANDOM_CASES)
@@ -249,9 +244,9 @@ def test_single_track_jacobian_matches_finite_differences(case, vehicle):
 
 
 def test_tanh_tyre_is_linear_then_saturates():
-    force, slope = rl.tanh_tyre(1e-4, 1.3e5, 7000.0)
+    force, slope = tanh_tyre(1e-4, 1.3e5 / 7000.0, 7000.0, 1.3e5)
     assert force == pytest.approx(13.0, rel=1e-5) and slope == pytest.approx(1.3e5, rel=1e-5)
-    force, slope = rl.tanh_tyre(0.5, 1.3e5, 7000.0)
+    force, slope = tanh_tyre(0.5, 1.3e5 / 7000.0, 7000.0, 1.3e5)
     assert force == pytest.approx(7000.0, rel=1e-6) and slope < 1.0
 
 
@@ -346,11 +341,11 @@ def test_dk_ekf_stays_observable_at_zero_yaw_rate(vehicle):
     assert np.abs(U[:, In.YAW_RATE]).max() < 0.01  # truly straight
     # DK-EKF: bounded vy (the tyre model balances the offset with ~0.03 m/s) and variance
     assert np.abs(dk_out[500:, Out.VY]).max() < 0.1
-    assert dk_state[S.KIN_P_YY] < 1e-3
+    assert dk_state[S.KIN_P + 2] < 1e-3
     assert np.all(dk_out[500:, Out.STATUS] == 0.0)
     # K-KF: vy = offset * t drift, variance ~ q_vy * ticks
     assert kkf_out[-1, Out.VY] > 0.8 * 0.3 * (n - 1) * DT
-    assert kkf_state[S.KIN_P_YY] > 0.5 * 3e-3 * n
+    assert kkf_state[S.KIN_P + 2] > 0.5 * 3e-3 * n
     assert kkf_out[-1, Out.STATUS] == ST_NOT_CONVERGED
     # PBH test of eq. 17-20 at r = 0, lambda = 0: [F - lambda I; H]
     F0 = np.zeros((2, 2))
@@ -372,7 +367,7 @@ def test_k_kf_zeroes_vy_on_straights(vehicle):
 
 @pytest.mark.parametrize("name", list(METHODS))
 def test_registry_loads_method_with_paper_defaults(name):
-    method = base.load(name)
+    method = registry.load(name)
     assert method.module is METHODS[name]
     assert method.params.shape == (len(METHODS[name].PARAMS),)
     assert np.all(np.isfinite(method.params))
@@ -407,12 +402,12 @@ def test_non_finite_state_resets_and_says_so(name, vehicle):
     module = METHODS[name]
     t = np.arange(400) * DT
     U, _ = single_track_ticks(vehicle, 0.03 * np.sin(2 * np.pi * 0.5 * t))
-    params = base.make_params(module, PAPER_PREPROCESSING)
+    params = registry.make_params(module, PAPER_PREPROCESSING)
     state = module.init(params, vehicle)
     OUT = np.zeros((400, N_OUT))
     module.run_ticks(state, U[:200], params, vehicle, DT, OUT[:200])
-    state[S.DYN_P_VV] = np.nan
-    state[S.KIN_P_YY] = np.nan
+    state[S.DYN_P] = np.nan
+    state[S.KIN_P + 2] = np.nan
     module.run_ticks(state, U[200:], params, vehicle, DT, OUT[200:])
     status = OUT[:, Out.STATUS].astype(int)
     assert status[200] & ST_RESET and status[200] & ST_NOT_CONVERGED
@@ -444,7 +439,7 @@ def test_standstill_and_start_up(name, vehicle):
 
 
 def test_step_allocates_nothing():
-    counts = allocations(METHODS, sine_drive_inputs(5000, 0.03, 0.2, 3.0), default_vehicle())
+    counts = allocations(METHODS, sine_drive_inputs(5000, 0.03, 0.2, 3.0), load_vehicle())
     assert set(counts) == set(METHODS)
     for name, (ticks_10, ticks_4980) in counts.items():
         # whatever the call itself costs (argument boxing), 4970 more ticks add nothing
@@ -471,7 +466,7 @@ def simulated_outputs(name: str, scenario: str, seed: int = 0) -> tuple[np.ndarr
     """(OUT, truth, n) of method ``name`` with its defaults on ``scenario``."""
     truth, U = simulated(scenario, seed)
     vehicle = load_vehicle()
-    method = base.load(name)
+    method = registry.load(name)
     state = method.init(vehicle)
     OUT = np.zeros((U.shape[0], N_OUT))
     method.run_ticks(state, U, method.params, vehicle, DT, OUT)

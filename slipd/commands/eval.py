@@ -52,16 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _methods(spec: str) -> list[str]:
-    from slipd.estimators.base import available
+    from slipd.estimators.registry import parse_names
 
-    names = available()
-    if spec == "all":
-        return names
-    chosen = [s.strip() for s in spec.split(",") if s.strip()]
-    unknown = [c for c in chosen if c not in names]
-    if unknown or not chosen:
-        raise ConfigError(f"unknown estimator(s) {unknown}; available: {', '.join(names)}")
-    return chosen
+    return parse_names(spec)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -49,14 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _methods(name: str) -> list[str]:
-    from slipd.estimators import base
+    from slipd.estimators.registry import parse_names
 
-    if name == "all":
-        return base.available()
-    names = [n.strip() for n in name.split(",") if n.strip()]
-    for n in names:
-        base.load(n)  # an unknown name fails here, naming the available ones
-    return names
+    return parse_names(name)  # an unknown name fails here, naming the available ones
 
 
 def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | None,
@@ -65,7 +60,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     """Replay one log; returns the summary text."""
     import time
 
-    from slipd.estimators import base
+    from slipd.estimators import registry
     from slipd.profile import load_profile
     from slipd.replay import outputs
     from slipd.replay.candump import write_candump
@@ -75,7 +70,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     started = time.perf_counter()
     profile = load_profile(profile_name)
     for name in methods:
-        base.load(name)  # unknown names fail before the log is read
+        registry.load(name)  # unknown names fail before the log is read
     frames = read_frames(log, skip_bad=skip_bad)
     inputs = latch_log_or_recording(frames, profile, bus_map)
     estimates = [run_method(inputs, profile, name) for name in methods]

@@ -38,11 +38,9 @@ from slipd.daemon.service import (
 from slipd.daemon.stats import Stats, StatsServer
 from slipd.daemon.transmit import QUEUE_FULL, frame_buffer, frame_writer, payload
 from slipd.errors import ConfigError
-from slipd.estimators import base
-from slipd.estimators.supervision import required_mask, supervise
+from slipd.pipeline import TICK_DT, Pipeline, catch_up_steps
 from slipd.profile import Profile
 
-TICK_DT = 0.01
 REOPEN_INTERVAL = 1.0  # s between attempts to reopen a vanished interface
 PERSIST_INTERVAL = 60.0  # s
 LATE_DRAIN_MAX = 64  # frames taken from the socket queue before a tick that is already late
@@ -208,12 +206,8 @@ class Daemon:
         self.config = config
         self.log = log or _log_line
         self.codec = Codec(config.profile)
-        self.method = base.load(config.estimator)
-        self.estimator_id = float(base.available().index(config.estimator))
-        self.vehicle = config.profile.vehicle
-        self.required = required_mask(base.required_channels(self.method, config.profile))
-        self.state = self.method.init(self.vehicle)
-        self.persistent = tuple(getattr(self.method.module, "PERSISTENT_STATE", ()))
+        self.pipeline = Pipeline(config.estimator, config.profile)
+        self.state = self.pipeline.new_state()
         self.store = StateStore(config.state_file)
         self.u = new_u()
         self.out = np.zeros(N_OUT)
@@ -223,7 +217,7 @@ class Daemon:
         self.on_second = on_second
         self.running = False
         self.last_status = 0
-        self.steps = 1  # estimator steps at the next tick (base.catch_up_steps)
+        self.steps = 1  # estimator steps at the next tick (pipeline.catch_up_steps)
         self._gc_started = 0.0
         self._dry_state = self.state.copy()
         self._dry_u, self._dry_out, self._dry_tx = new_u(), np.zeros(N_OUT), np.zeros(N_TX)
@@ -326,15 +320,24 @@ class Daemon:
             receiver.recv(64)
 
     def restore_state(self) -> str:
-        values, message = self.store.load(self.config.estimator, len(self.state))
-        for index, value in values.items():
-            if index in self.persistent:
-                self.state[index] = value
+        """The persisted elements of the state saved at the last stop (by name; a file saved
+        under another state layout is reported and ignored)."""
+        slots = self.pipeline.persistent_slots
+        if not slots:
+            return "state persistence: the estimator keeps nothing across restarts"
+        values, message = self.store.load(self.config.estimator, self.pipeline.layout.hash)
+        for name, value in values.items():
+            if name in slots:
+                self.state[slots[name]] = value
         return message
 
     def save_state(self) -> None:
+        slots = self.pipeline.persistent_slots
+        if not slots:
+            return
+        values = {name: float(self.state[index]) for name, index in slots.items()}
         try:
-            self.store.save(self.config.estimator, self.state, self.persistent)
+            self.store.save(self.config.estimator, self.pipeline.layout.hash, values)
         except OSError as exc:
             self.log(f"slipd: cannot save state to {self.store.path}: {exc}")
 
@@ -507,12 +510,10 @@ class Daemon:
         """Latch -> ``steps`` estimator steps -> supervise -> output slots, on the live arrays
         (tick) or on scratch copies (_dry_tick)."""
         self.codec.sample(t_wall, u)
-        for _ in range(steps):  # more than one after skipped ticks (base.catch_up_steps)
-            self.method.step(state, u, self.method.params, self.vehicle, TICK_DT, out)
-        supervise(u, self.required, out)
+        self.pipeline.tick(state, u, out, steps)  # steps > 1 after skipped ticks
         if self.bus_down_since is not None:
             out[Out.STATUS] = float((int(out[Out.STATUS]) & ~ST_VALID) | ST_INPUT_TIMEOUT)
-        fill_tx(out, self.estimator_id, tx)
+        fill_tx(out, self.pipeline.wire_id, tx)
 
     def tick(self, t_wall: float) -> None:
         """One cycle's work after the wake-up: latch -> step -> supervise -> encode -> send."""
@@ -650,7 +651,7 @@ class Daemon:
                     stats.counters["deadline_misses"] += 1 + behind
                     stats.interval_misses += 1 + behind
                     next_tick += behind * TICK_DT
-                    self.steps = int(base.catch_up_steps(behind))
+                    self.steps = int(catch_up_steps(behind))
                     self._report_miss(woke, sent, cycle_us, behind)
                 # Slack work, after this tick's frames are out.
                 if sent >= next_second:

@@ -17,8 +17,6 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from slipd.errors import ConfigError
 
 PR_SET_TIMERSLACK = 29
@@ -167,13 +165,19 @@ def _smaps_entries(smaps: str):
 
 
 class StateStore:
-    """Persisted estimator state (offsets, mu) as JSON, written atomically."""
+    """Persisted estimator state (learnt offsets, calibrations) as JSON, written atomically.
+
+    The file names the method, its state layout's hash and each value's state element by name
+    (``{"method": ..., "layout": ..., "state": {"OFFSETS.YAW_RATE": ...}}``), so that a value is
+    never restored into a slot that means something else: a file of another method or another
+    layout is reported and ignored, never fatal.
+    """
 
     def __init__(self, path: Path | None):
         self.path = path
 
-    def load(self, method: str, size: int) -> tuple[dict[int, float], str]:
-        """Saved {state index: value} for ``method``; a bad file is reported, never fatal."""
+    def load(self, method: str, layout: str) -> tuple[dict[str, float], str]:
+        """Saved {element name: value} for ``method`` under state layout hash ``layout``."""
         if self.path is None:
             return {}, "state persistence off"
         if not self.path.exists():
@@ -183,18 +187,23 @@ class StateStore:
             if document.get("method") != method:
                 return {}, (f"saved state in {self.path} is for {document.get('method')!r}, "
                             f"not {method!r}: ignored")
-            values = {int(k): float(v) for k, v in document["state"].items()}
-            if any(not 0 <= k < size or not math.isfinite(v) for k, v in values.items()):
-                raise ValueError("index out of range or non-finite value")
+            if document.get("layout") != layout:
+                return {}, (f"saved state in {self.path} has state layout "
+                            f"{document.get('layout')!r}, this slipd's {method} has {layout!r} "
+                            "(saved by another version): ignored")
+            values = {str(k): float(v) for k, v in document["state"].items()}
+            if any(not math.isfinite(v) for v in values.values()):
+                raise ValueError("non-finite value")
             return values, f"restored {len(values)} state values from {self.path}"
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             return {}, f"state file {self.path} is corrupt ({exc}): ignored"
 
-    def save(self, method: str, state: np.ndarray, indices: tuple[int, ...]) -> None:
-        if self.path is None or not indices:
+    def save(self, method: str, layout: str, values: dict[str, float]) -> None:
+        if self.path is None or not values:
             return
-        document = {"method": method, "state": {str(i): float(state[i]) for i in indices
-                                                if math.isfinite(state[i])}}
+        document = {"method": method, "layout": layout,
+                    "state": {name: value for name, value in values.items()
+                              if math.isfinite(value)}}
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=".slipd-state-")
         with os.fdopen(fd, "w") as handle:

@@ -4,9 +4,12 @@ Generalises the matrix-weighted linear minimum-variance fusion of Chen et al. 20
 eq. 26-39; shared/papers/chen2018-pseudo-multisensor-fusion.md) from its three pseudo-sensors to
 the N = 7 member methods below, for the scalar sideslip angle.
 
-Members (``MEMBERS``, fixed order): kinematic_heuristic, dk_ekf, d_ekf, k_kf, hybrid_friction,
-pseudo_fusion, gnss_magnetometer. Not members: ``zero`` (a floor, not an estimate) and the thin
-variants (``*_nocls``, ``pseudo_fusion_kbe/dbe/wbe``), which rerun a member's kernels.
+Members (``MEMBERS``): the registry's Specs with ``ensemble=True``, in registry order
+(kinematic_heuristic, dk_ekf, d_ekf, k_kf, hybrid_friction, pseudo_fusion, gnss_magnetometer).
+Not members: the floors ``zero`` and ``linear_kf`` and the variants (``*_nocls``,
+``pseudo_fusion_kbe/dbe/wbe``), which rerun a member's kernels. numba cannot cache a kernel
+that calls functions it is handed, so ``run_members`` calls each member's step by name: a new
+member is a registry flag and one line there (an import-time check says so).
 
 Fusion (one scalar per member, beta_i with error e_i = beta_i - beta)
     eq. 27  beta_0 = sum_i w_i beta_i with sum_i w_i = 1 (unbiasedness, eq. 26)
@@ -25,9 +28,9 @@ How P is obtained online, without ground truth (slipd's choice):
 * N-cornered hat (Gray & Allan 1974; the least-squares form of the three-cornered hat that
   ``pseudo_fusion`` offers as its mode 1) with a family term: the N (N - 1) / 2 moments cannot
   identify the N (N + 1) / 2 elements of P, so P is given a structure with fewer unknowns. The
-  errors of members that share kernels (``FAMILY``: dk_ekf, d_ekf and k_kf are all built from
-  the righetti_lenzo dynamic EKF and kinematic KF) are modelled as a common part plus an own
-  part, all other errors as independent:
+  errors of members that share kernels (``FAMILY``, the Specs' family: dk_ekf, d_ekf and k_kf
+  are all built from the righetti_lenzo2025 dynamic EKF and kinematic KF) are modelled as a
+  common part plus an own part, all other errors as independent:
       e_i = c_f(i) + u_i,  P_ii = C_f + U_i,  P_ij = C_f (same family f),  P_ij = 0 (otherwise)
       D_ij = U_i + U_j (same family),  D_ij = U_i + C_f(i) + U_j + C_f(j) (otherwise)
   (C of a family of one is part of its U.) The unknowns theta = [U_1..U_n, C_f..] are fitted to
@@ -40,8 +43,8 @@ How P is obtained online, without ground truth (slipd's choice):
   Negative U_i or C_f are set to 0. The weights c_ij make the fit one in relative errors: a
   sample second moment has a standard deviation proportional to its value (chi-square), so
   without them the degree-squared moments of a member that is far off dominate the fit and the
-  small U_i of the good members come out as differences of large numbers (measured on the
-  simulator: negative for one good member, which then took 90 % of the weight). Without
+  small U_i of the good members come out as differences of large numbers (on the simulator:
+  negative for one good member, which then took 90 % of the weight). Without
   families, equal c_ij and n = 3 this is T_1 = (D_12 + D_13 - D_23) / 2. Why the family term
   (measured on the simulator): dk_ekf and d_ekf differ by 0.3-0.8 deg where both are 1-4 deg
   off; treated as independent they look like the two best members and out-vote the others.
@@ -86,11 +89,13 @@ Params: the fusion's own (``FUSION_PARAMS``) first, then every member's params v
 gives them): tau = 2 s as ``pseudo_fusion``'s ``fusion_time_constant``, entry time 1 s,
 sigma_floor 0.05 deg (ten steps of the output frame's beta, below every member's accuracy).
 
-State layout: the fusion block (``F`` offsets below: member state and params bounds, usable
+State layout (``LAYOUT``): the fusion block (``F``: member state and params bounds, usable
 streaks, weights, variances P_ii, family terms C_f, moments, member outputs, scratch), then each
-member's own state vector. Member state and params bounds are written by ``init`` into the
-state rather than frozen into the kernel as constants, so that a member that grows a parameter
-cannot leave a cached kernel reading the wrong slots. Each member's ``step`` is called on
+member's own state vector (its layout nested under the member's name, so that the daemon keeps
+the members' learnt offsets and calibrations across restarts: ``PERSISTENT``). Member state
+and params bounds are written by ``init`` into the state rather than frozen into the kernel as
+constants, so that a member that grows a parameter cannot leave a cached kernel reading the
+wrong slots. Each member's ``step`` is called on
 slices of the ensemble's state and params (views, no allocation). The compiled members are
 linked into this module's cached kernel; numba would not notice a change of a member module,
 which is why slipd keys its whole numba cache to a hash of its sources (slipd/__init__.py).
@@ -118,17 +123,16 @@ from slipd.channels import (
     VALID,
     Out,
 )
-from slipd.estimators import (
-    d_ekf,
-    dk_ekf,
-    gnss_magnetometer,
-    hybrid_friction,
-    k_kf,
-    kinematic_heuristic,
-    pseudo_fusion,
-)
+from slipd.estimators import registry
+from slipd.estimators.carnier2023 import hybrid_friction
+from slipd.estimators.chen2018 import pseudo_fusion
+from slipd.estimators.common.layout import build_layout
+from slipd.estimators.common.outputs import write_outputs
+from slipd.estimators.righetti_lenzo2025 import d_ekf, dk_ekf, k_kf
+from slipd.estimators.selmanaj2017 import kinematic_heuristic
+from slipd.estimators.yoon2016 import gnss_magnetometer
 
-#: The member methods, in the order of their slots (and of the calls in ``step``).
+#: The member methods, in the order of their slots (and of the calls in ``run_members``).
 MEMBERS = (
     "kinematic_heuristic",
     "dk_ekf",
@@ -138,11 +142,17 @@ MEMBERS = (
     "pseudo_fusion",
     "gnss_magnetometer",
 )
+_REGISTERED = tuple(spec.name for spec in registry.ensemble_members())
+if _REGISTERED != MEMBERS:
+    raise ImportError(f"ensemble: the registry's members {_REGISTERED} differ from the ones "
+                      f"run_members calls {MEMBERS}; add the call (or the registry flag)")
 N_MEMBERS = len(MEMBERS)
-#: Family of each member: members of one family share kernels (dk_ekf, d_ekf and k_kf are built
-#: from the same righetti_lenzo dynamic EKF and kinematic KF), so their errors share a part the
-#: fit models as a common term C_f (module docstring). The others are families of one.
-FAMILY = (0, 1, 1, 1, 2, 3, 4)
+_SPECS = tuple(registry.spec(name) for name in MEMBERS)
+_FAMILIES = tuple(dict.fromkeys(spec.family for spec in _SPECS))
+#: Family of each member (an index): members of one family share kernels (dk_ekf, d_ekf and
+#: k_kf are built from the same righetti_lenzo2025 dynamic EKF and kinematic KF), so their
+#: errors share a part the fit models as a common term C_f (module docstring).
+FAMILY = tuple(_FAMILIES.index(spec.family) for spec in _SPECS)
 #: A member's status bits that take it out of the fusion this tick.
 EXCLUDING = ST_UNAVAILABLE | ST_INPUT_TIMEOUT | ST_NOT_CONVERGED | ST_RESET
 
@@ -161,19 +171,17 @@ FUSION_DEFAULTS = {
 
 
 def _member_module(name: str) -> ModuleType:
-    return importlib.import_module(f"slipd.estimators.{name}")
+    return importlib.import_module(registry.spec(name).module)
 
 
 def _member_fields() -> list[tuple[str, float]]:
     """(PARAMS name, default) of every member param, prefixed with the member's name."""
-    from slipd.estimators.base import make_params
-
     fields = []
-    for name in MEMBERS:
-        module = _member_module(name)
-        values = make_params(module)
+    for spec in _SPECS:
+        module = _member_module(spec.name)
+        values = registry.make_params(module, spec.overrides)
         for field in module.PARAMS:
-            fields.append((f"{name.upper()}__{field.name}", float(values[int(field)])))
+            fields.append((f"{spec.name.upper()}__{field.name}", float(values[int(field)])))
     return fields
 
 
@@ -187,28 +195,35 @@ PARAMS = enum.IntEnum(
 PARAMS.__doc__ = "Fusion params, then each member's params as <MEMBER>__<FIELD>."
 DEFAULTS = {**FUSION_DEFAULTS, **{name.lower(): value for name, value in _FIELDS}}
 
-
-class F(enum.IntEnum):
-    """Offsets of the fusion block in the state vector (each a block of the given length)."""
-
-    STATE_BOUNDS = 0  # N + 1: start of member m's state; [N] the end of the last
-    PARAMS_BOUNDS = STATE_BOUNDS + N_MEMBERS + 1  # N + 1: the same for the params vector
-    USABLE = PARAMS_BOUNDS + N_MEMBERS + 1  # N: 1.0 when the member is usable this tick
-    USABLE_TICKS = USABLE + N_MEMBERS  # N: consecutive usable ticks
-    FUSED = USABLE_TICKS + N_MEMBERS  # N: 1.0 when the member enters this tick's fusion
-    WEIGHT = FUSED + N_MEMBERS  # N: the weights w_i of the last tick
-    VARIANCE = WEIGHT + N_MEMBERS  # N: P_ii of the last tick, rad^2 (NaN: not fused)
-    MOMENT = VARIANCE + N_MEMBERS  # N x N: D_ij (row-major, symmetric, diagonal unused)
-    MASS = MOMENT + N_MEMBERS * N_MEMBERS  # N x N: M_ij, the EWMA weight collected
-    REQUIRED = MASS + N_MEMBERS * N_MEMBERS  # N x N_IN: 1.0 where member m requires channel
-    MEMBER_OUT = REQUIRED + N_MEMBERS * N_IN  # N x N_OUT: the members' outputs of this tick
-    INDEX = MEMBER_OUT + N_MEMBERS * N_OUT  # N: scratch, member of each packed index
-    UNKNOWN = INDEX + N_MEMBERS  # N: scratch, unknown index of family f's C_f (-1: none)
-    SYSTEM = UNKNOWN + N_MEMBERS  # 2N x 2N: scratch, normal equations, then P
-    RHS = SYSTEM + 4 * N_MEMBERS * N_MEMBERS  # 2N: scratch, right-hand side, then the solution
-    SCALE = RHS + 2 * N_MEMBERS  # 2N: scratch, the diagonal scaling
-    COMMON = SCALE + 2 * N_MEMBERS  # N: C_f of family f of the last tick, rad^2
-    END = COMMON + N_MEMBERS
+#: The fusion block, then each member's state (module docstring).
+LAYOUT = build_layout(
+    "ensemble",
+    ("STATE_BOUNDS", N_MEMBERS + 1),  # start of member m's state; [N] the end of the last
+    ("PARAMS_BOUNDS", N_MEMBERS + 1),  # the same for the params vector
+    ("USABLE", N_MEMBERS),  # 1.0 when the member is usable this tick
+    ("USABLE_TICKS", N_MEMBERS),  # consecutive usable ticks
+    ("FUSED", N_MEMBERS),  # 1.0 when the member enters this tick's fusion
+    ("WEIGHT", N_MEMBERS),  # the weights w_i of the last tick
+    ("VARIANCE", N_MEMBERS),  # P_ii of the last tick, rad^2 (NaN: not fused)
+    ("MOMENT", N_MEMBERS * N_MEMBERS),  # D_ij (row-major, symmetric, diagonal unused)
+    ("MASS", N_MEMBERS * N_MEMBERS),  # M_ij, the EWMA weight collected
+    ("REQUIRED", N_MEMBERS * N_IN),  # 1.0 where member m requires channel
+    ("MEMBER_OUT", N_MEMBERS * N_OUT),  # the members' outputs of this tick
+    ("INDEX", N_MEMBERS),  # scratch, member of each packed index
+    ("UNKNOWN", N_MEMBERS),  # scratch, unknown index of family f's C_f (-1: none)
+    ("SYSTEM", 4 * N_MEMBERS * N_MEMBERS),  # scratch, normal equations, then P (2N x 2N)
+    ("RHS", 2 * N_MEMBERS),  # scratch, right-hand side, then the solution
+    ("SCALE", 2 * N_MEMBERS),  # scratch, the diagonal scaling
+    ("COMMON", N_MEMBERS),  # C_f of family f of the last tick, rad^2
+    *((name.upper(), _member_module(name).LAYOUT) for name in MEMBERS),
+)
+F = LAYOUT.S
+_FUSION_END = int(F[MEMBERS[0].upper()])
+#: The members' persistent state (their learnt offsets and calibrations), by element name.
+PERSISTENT = tuple(
+    f"{name.upper()}.{_member_module(name).LAYOUT.element_names[i]}" for name in MEMBERS
+    for i in _member_module(name).LAYOUT.indices(getattr(_member_module(name), "PERSISTENT", ()))
+)
 
 
 def member_params(params: np.ndarray, name: str) -> np.ndarray:
@@ -234,10 +249,13 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     if params_bounds[-1] != len(params):
         raise ValueError(f"ensemble: params vector has {len(params)} elements, "
                          f"the members need {params_bounds[-1]}")
-    state_bounds = [int(F.END)]
+    state_bounds = [_FUSION_END]
     for member_state in member_states:
         state_bounds.append(state_bounds[-1] + len(member_state))
-    state = np.zeros(state_bounds[-1], dtype=np.float64)
+    if state_bounds[-1] != LAYOUT.size:
+        raise ValueError(f"ensemble: the members' states add up to {state_bounds[-1]} slots, "
+                         f"the layout has {LAYOUT.size}")
+    state = np.zeros(LAYOUT.size, dtype=np.float64)
     state[F.STATE_BOUNDS : F.STATE_BOUNDS + N_MEMBERS + 1] = state_bounds
     state[F.PARAMS_BOUNDS : F.PARAMS_BOUNDS + N_MEMBERS + 1] = params_bounds
     state[F.VARIANCE : F.VARIANCE + N_MEMBERS] = np.nan
@@ -264,23 +282,24 @@ def _member_out(state, m):
     return state[start : start + N_OUT]
 
 
+@nb.njit(cache=True, inline="always")
+def _member(state, u, params, vehicle, dt, m):
+    """The arguments of member m's ``step``: views of its state, params and outputs."""
+    return (_member_state(state, m), u, _member_params(state, params, m), vehicle, dt,
+            _member_out(state, m))
+
+
 @nb.njit(cache=True)
 def run_members(state, u, params, vehicle, dt):
-    """Each member's ``step`` on its slices (static calls: numba caches no function arguments)."""
-    kinematic_heuristic.step(_member_state(state, 0), u, _member_params(state, params, 0),
-                             vehicle, dt, _member_out(state, 0))  # fmt: skip
-    dk_ekf.step(_member_state(state, 1), u, _member_params(state, params, 1),
-                vehicle, dt, _member_out(state, 1))  # fmt: skip
-    d_ekf.step(_member_state(state, 2), u, _member_params(state, params, 2),
-               vehicle, dt, _member_out(state, 2))  # fmt: skip
-    k_kf.step(_member_state(state, 3), u, _member_params(state, params, 3),
-              vehicle, dt, _member_out(state, 3))  # fmt: skip
-    hybrid_friction.step(_member_state(state, 4), u, _member_params(state, params, 4),
-                         vehicle, dt, _member_out(state, 4))  # fmt: skip
-    pseudo_fusion.step(_member_state(state, 5), u, _member_params(state, params, 5),
-                       vehicle, dt, _member_out(state, 5))  # fmt: skip
-    gnss_magnetometer.step(_member_state(state, 6), u, _member_params(state, params, 6),
-                           vehicle, dt, _member_out(state, 6))  # fmt: skip
+    """Each member's ``step`` on its slices (static calls, in MEMBERS order: numba caches no
+    kernel that calls a function it is handed)."""
+    kinematic_heuristic.step(*_member(state, u, params, vehicle, dt, 0))
+    dk_ekf.step(*_member(state, u, params, vehicle, dt, 1))
+    d_ekf.step(*_member(state, u, params, vehicle, dt, 2))
+    k_kf.step(*_member(state, u, params, vehicle, dt, 3))
+    hybrid_friction.step(*_member(state, u, params, vehicle, dt, 4))
+    pseudo_fusion.step(*_member(state, u, params, vehicle, dt, 5))
+    gnss_magnetometer.step(*_member(state, u, params, vehicle, dt, 6))
 
 
 @nb.njit(cache=True)
@@ -426,11 +445,10 @@ def _add_pair(state, p, q, fp, fq, same, weight, value):
                 state[F.SYSTEM + a * STRIDE + b] += weight
 
 
-@nb.njit(cache=True)
-def error_covariance(state, floor):
-    """P of the fused members (module docstring) and the weights of eq. 38 into
-    ``state[F.WEIGHT:]``; P_ii into ``state[F.VARIANCE:]`` (NaN for members not fused), C_f
-    into ``state[F.COMMON:]``. Returns (number fused, fused variance w' P w)."""
+@nb.njit(cache=True, inline="always")
+def _select_fused(state):
+    """Reset the tick's weights, variances and family terms; the fused members' indices into
+    ``state[F.INDEX:]``. Returns their number n."""
     n = 0
     for i in range(N_MEMBERS):
         state[F.VARIANCE + i] = math.nan
@@ -440,8 +458,15 @@ def error_covariance(state, floor):
         if _fused(state, i):
             state[F.INDEX + n] = i
             n += 1
-    if n == 0:
-        return 0, math.nan
+    return n
+
+
+@nb.njit(cache=True, inline="always")
+def _fit_moments(state, n, floor):
+    """The N-cornered hat with family terms (module docstring): U_p of the n fused members and
+    C_f of each identifiable family, fitted to the moments by weighted least squares (the
+    solution in ``state[F.RHS:]``, C_f into ``state[F.COMMON:]``). Returns whether it was
+    solved (it needs n >= 3 and a positive definite system)."""
     # unknowns: U_p for p < n, then C_f of each family with >= 2 fused members and >= 2 fused
     # members outside it (else C_f is not identifiable and taken as 0)
     m = n
@@ -450,26 +475,32 @@ def error_covariance(state, floor):
         if inside >= 2 and n - inside >= 2:
             state[F.UNKNOWN + family] = m
             m += 1
-    solved = False
-    if n >= 3:
-        for a in range(m):
-            state[F.RHS + a] = 0.0
-            for b in range(m):
-                state[F.SYSTEM + a * STRIDE + b] = 0.0
-        for p in range(n):
-            i = int(state[F.INDEX + p])
-            for q in range(p + 1, n):
-                j = int(state[F.INDEX + q])
-                d = _moment(state, i, j)
-                weight = 1.0 / ((d + floor) * (d + floor))
-                _add_pair(state, p, q, FAMILY[i], FAMILY[j], FAMILY[i] == FAMILY[j], weight, d)
-        solved = _solve_spd(state, m)
-        if solved:
-            for family in range(N_MEMBERS):
-                k = int(state[F.UNKNOWN + family])
-                if k >= 0:
-                    state[F.COMMON + family] = max(state[F.RHS + k], 0.0)
-    # diagonal: max(U_i + C_f, own sigma^2) + floor; same-family cross terms C_f
+    if n < 3:
+        return False
+    for a in range(m):
+        state[F.RHS + a] = 0.0
+        for b in range(m):
+            state[F.SYSTEM + a * STRIDE + b] = 0.0
+    for p in range(n):
+        i = int(state[F.INDEX + p])
+        for q in range(p + 1, n):
+            j = int(state[F.INDEX + q])
+            d = _moment(state, i, j)
+            weight = 1.0 / ((d + floor) * (d + floor))
+            _add_pair(state, p, q, FAMILY[i], FAMILY[j], FAMILY[i] == FAMILY[j], weight, d)
+    if not _solve_spd(state, m):
+        return False
+    for family in range(N_MEMBERS):
+        k = int(state[F.UNKNOWN + family])
+        if k >= 0:
+            state[F.COMMON + family] = max(state[F.RHS + k], 0.0)
+    return True
+
+
+@nb.njit(cache=True, inline="always")
+def _member_variances(state, n, solved, floor):
+    """P_ii = max(U_i + C_f, own sigma^2) + floor into ``state[F.VARIANCE:]`` (with n = 2 the
+    moment shared in proportion to the own variances, with n = 1 the own variance)."""
     for p in range(n):
         i = int(state[F.INDEX + p])
         own = _own_variance(state, i)
@@ -483,23 +514,31 @@ def error_covariance(state, floor):
         else:
             hat = own
         state[F.VARIANCE + i] = max(hat, own) + floor
-    # eq. 38: x = P^-1 1, w = x / (1' x); P rebuilt in the scratch matrix
+
+
+@nb.njit(cache=True, inline="always")
+def _covariance(state, i, j, diagonal):
+    """P_ij of the model: P_ii on the diagonal, C_f within a family, 0 across families."""
+    if diagonal:
+        return state[F.VARIANCE + i]
+    if FAMILY[i] == FAMILY[j]:
+        return state[F.COMMON + FAMILY[i]]
+    return 0.0
+
+
+@nb.njit(cache=True, inline="always")
+def _minimum_variance_weights(state, n):
+    """Eq. 38 with the model's P: x = P^-1 1 (P rebuilt in the scratch matrix), negative x
+    (a member correlated with a better one) clipped, w = x / (1' x) into ``state[F.WEIGHT:]``."""
     for p in range(n):
         i = int(state[F.INDEX + p])
         state[F.RHS + p] = 1.0
         for q in range(n):
-            j = int(state[F.INDEX + q])
-            if p == q:
-                value = state[F.VARIANCE + i]
-            elif FAMILY[i] == FAMILY[j]:
-                value = state[F.COMMON + FAMILY[i]]
-            else:
-                value = 0.0
-            state[F.SYSTEM + p * STRIDE + q] = value
+            state[F.SYSTEM + p * STRIDE + q] = _covariance(state, i, int(state[F.INDEX + q]),
+                                                           p == q)  # fmt: skip
     if not _solve_spd(state, n):
         for p in range(n):  # cannot happen for P = diag + family blocks; diagonal P then
             state[F.RHS + p] = 1.0 / state[F.VARIANCE + int(state[F.INDEX + p])]
-    # negative weights (a member correlated with a better one) clipped: w >= 0, sum w = 1
     total = 0.0
     for p in range(n):
         x = state[F.RHS + p]
@@ -507,19 +546,27 @@ def error_covariance(state, floor):
     for p in range(n):
         x = state[F.RHS + p]
         state[F.WEIGHT + int(state[F.INDEX + p])] = x / total if x > 0.0 else 0.0
+
+
+@nb.njit(cache=True)
+def error_covariance(state, floor):
+    """P of the fused members (module docstring) and the weights of eq. 38 into
+    ``state[F.WEIGHT:]``; P_ii into ``state[F.VARIANCE:]`` (NaN for members not fused), C_f
+    into ``state[F.COMMON:]``. Returns (number fused, fused variance w' P w)."""
+    n = _select_fused(state)
+    if n == 0:
+        return 0, math.nan
+    solved = _fit_moments(state, n, floor)
+    _member_variances(state, n, solved, floor)
+    _minimum_variance_weights(state, n)
     # fused variance w' P w
     variance = 0.0
     for p in range(n):
         i = int(state[F.INDEX + p])
         for q in range(n):
             j = int(state[F.INDEX + q])
-            if p == q:
-                cov = state[F.VARIANCE + i]
-            elif FAMILY[i] == FAMILY[j]:
-                cov = state[F.COMMON + FAMILY[i]]
-            else:
-                cov = 0.0
-            variance += state[F.WEIGHT + i] * state[F.WEIGHT + j] * cov
+            variance += state[F.WEIGHT + i] * state[F.WEIGHT + j] * _covariance(state, i, j,
+                                                                                p == q)
     return n, variance
 
 
@@ -581,15 +628,10 @@ def fuse(state, floor, out):
         if state[F.WEIGHT + m] > best and math.isfinite(value) and value > 0.0:
             best = state[F.WEIGHT + m]
             friction_class = value
-    out[Out.BETA] = beta
-    out[Out.BETA_RATE] = beta_rate if math.isfinite(beta_rate) else 0.0
-    out[Out.VX] = vx
-    out[Out.VY] = vx * math.tan(beta)
-    out[Out.MU] = _weighted_mean(state, Out.MU)
-    out[Out.SIGMA_BETA] = math.sqrt(1.0 / information) if information > 0.0 else math.nan
-    out[Out.ROLL] = roll if math.isfinite(roll) else 0.0
-    out[Out.FRICTION_CLASS] = friction_class
-    out[Out.STATUS] = float(status)
+    write_outputs(out, beta, beta_rate if math.isfinite(beta_rate) else 0.0, vx,
+                  vx * math.tan(beta), _weighted_mean(state, Out.MU),
+                  math.sqrt(1.0 / information) if information > 0.0 else math.nan, roll,
+                  friction_class, status)  # fmt: skip
 
 
 @nb.njit(cache=True)
@@ -613,3 +655,4 @@ def fuse_tick(state, u, params, dt, out):
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])
+

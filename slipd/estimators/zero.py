@@ -1,44 +1,46 @@
 """``zero``: beta = 0, vx from the mean of the rear wheel speeds.
 
 Not a paper; the floor every method must beat (a straight-driving assumption costs exactly
-|beta| of error).
+|beta| of error). With a rear wheel invalid, vx is the other one's (0 without either), flagged
+INPUT_TIMEOUT.
 """
 
 from __future__ import annotations
 
-import enum
+import math
 
 import numba as nb
 import numpy as np
 
-from slipd.channels import ST_INPUT_TIMEOUT, VALID, In, Out
+from slipd.channels import ST_INPUT_TIMEOUT, In
+from slipd.estimators.common.inputs import channel
+from slipd.estimators.common.layout import build_layout
+from slipd.estimators.common.outputs import write_outputs
+from slipd.estimators.common.params import build_params
 
-
-@enum.unique
-class PARAMS(enum.IntEnum):
-    UNUSED = 0
-
-
-DEFAULTS = {"unused": 0.0}
+PARAMS, DEFAULTS = build_params("zero", ("UNUSED", 0.0))
+LAYOUT = build_layout("zero", "UNUSED")
 
 
 def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
-    return np.zeros(1, dtype=np.float64)
+    return np.zeros(LAYOUT.size, dtype=np.float64)
 
 
 @nb.njit(cache=True)
 def step(state, u, params, vehicle, dt, out):
-    vx = 0.5 * (u[In.WHEEL_SPEED_RL] + u[In.WHEEL_SPEED_RR])
-    out[Out.BETA] = 0.0
-    out[Out.BETA_RATE] = 0.0
-    out[Out.VX] = vx
-    out[Out.VY] = 0.0
-    out[Out.MU] = np.nan
-    out[Out.SIGMA_BETA] = np.nan
-    out[Out.ROLL] = 0.0
-    out[Out.FRICTION_CLASS] = 0.0
-    ok = u[VALID + In.WHEEL_SPEED_RL] > 0.5 and u[VALID + In.WHEEL_SPEED_RR] > 0.5
-    out[Out.STATUS] = 0.0 if ok else float(ST_INPUT_TIMEOUT)
+    rear_left, rear_left_ok = channel(u, In.WHEEL_SPEED_RL)
+    rear_right, rear_right_ok = channel(u, In.WHEEL_SPEED_RR)
+    status = ST_INPUT_TIMEOUT
+    if rear_left_ok and rear_right_ok:
+        vx = 0.5 * (rear_left + rear_right)
+        status = 0
+    elif rear_left_ok:
+        vx = rear_left
+    elif rear_right_ok:
+        vx = rear_right
+    else:
+        vx = 0.0
+    write_outputs(out, 0.0, 0.0, vx, 0.0, math.nan, math.nan, 0.0, 0.0, status)
 
 
 @nb.njit(cache=True)

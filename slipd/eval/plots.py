@@ -58,7 +58,7 @@ def style(name_or_index: str | int) -> dict:
     figure), or by position for a name slipd does not know. Distinct for 28 methods."""
     i = name_or_index
     if isinstance(name_or_index, str):
-        from slipd.estimators.base import available
+        from slipd.estimators.registry import available
 
         names = available()
         i = names.index(name_or_index) if name_or_index in names else len(names)

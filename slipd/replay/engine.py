@@ -1,8 +1,8 @@
 """The batch engine: a decoded log through the same kernels the daemon runs, at 100 Hz.
 
 frames -> :func:`slipd.codec.kernels.latch_ticks` (decode, latch, sample-and-hold at each
-tick) -> the method's ``run_ticks`` -> :func:`slipd.estimators.supervision.supervise_ticks`.
-The daemon calls ``decode_frame``/``sample_latch``/``step``/``supervise`` one at a time on
+tick) -> :meth:`slipd.pipeline.Pipeline.run` (the method's ``run_ticks``, then supervision).
+The daemon calls ``decode_frame``/``sample_latch`` and ``Pipeline.tick`` one tick at a time on
 the same arrays, so replaying its flight-recorder log with the recorded tick times gives its
 outputs exactly.
 """
@@ -14,17 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
-from slipd.channels import N_OUT, U_LEN
+from slipd.channels import U_LEN
 from slipd.codec import Codec, kernels
 from slipd.codec.kernels import ERROR_NAMES
 from slipd.errors import ConfigError, LogFormatError
-from slipd.estimators import base
-from slipd.estimators.supervision import required_mask, supervise_ticks
+from slipd.pipeline import TICK_DT, Pipeline, steps_per_tick
 from slipd.profile import Profile, load_profile
 from slipd.replay.candump import FLAG_TX, Frames
 from slipd.replay.readers import read_frames
-
-TICK_DT = 0.01
 
 
 @dataclass
@@ -35,7 +32,7 @@ class Inputs:
     U: np.ndarray  # [n_ticks, U_LEN]
     errors: dict[str, dict[str, int]]
     n_frames: int
-    #: estimator steps per tick (base.steps_per_tick: more than one after ticks the daemon
+    #: estimator steps per tick (pipeline.steps_per_tick: more than one after ticks the daemon
     #: skipped in a recording); None = one each
     steps: np.ndarray | None = None
 
@@ -169,7 +166,7 @@ def latch_log_or_recording(frames: Frames, profile: Profile,
         return latch_log(frames, profile, bus_map=bus_map)
     inputs, tick_time, tick_until = recorded
     latched = latch_log(inputs, profile, tick_time, tick_until=tick_until, bus_map=bus_map)
-    steps = base.steps_per_tick(tick_time, TICK_DT)
+    steps = steps_per_tick(tick_time, TICK_DT)
     if np.any(steps > 1):
         latched.steps = steps
     return latched
@@ -178,17 +175,8 @@ def latch_log_or_recording(frames: Frames, profile: Profile,
 def run_method(inputs: Inputs, profile: Profile, name: str,
                overrides: dict[str, float] | None = None, dt: float = TICK_DT) -> Estimate:
     """Run method ``name`` over latched inputs; returns its supervised outputs."""
-    method = base.load(name, overrides)
-    state = method.init(profile.vehicle)
-    U = inputs.U
-    if inputs.steps is not None:  # a tick after skipped ones steps once per elapsed tick
-        U = np.repeat(U, inputs.steps, axis=0)
-    out = np.zeros((len(U), N_OUT))
-    method.run_ticks(state, U, method.params, profile.vehicle, dt, out)
-    if inputs.steps is not None:
-        out = np.ascontiguousarray(out[np.cumsum(inputs.steps) - 1])
-    supervise_ticks(inputs.U, required_mask(base.required_channels(method, profile)), out)
-    return Estimate(name, inputs.t, out)
+    pipeline = Pipeline(name, profile, overrides, dt)
+    return Estimate(name, inputs.t, pipeline.run(inputs.U, inputs.steps))
 
 
 def run_log(log_path: str | Path, profile: Profile | str, method_names: list[str],

@@ -6,7 +6,7 @@ import numpy as np
 
 from slipd.codec import N_TX, Codec, kernels
 from slipd.codec.tx import fill_tx_rows
-from slipd.estimators import base
+from slipd.estimators import registry
 from slipd.replay.candump import FLAG_BRS, FLAG_EXTENDED, FLAG_FD, Frames
 
 
@@ -22,7 +22,7 @@ def output_frames(estimate, channel_index: int, first_counter: int = 0,
     """SLIPD_STATE and SLIPD_AUX frames of every tick (what the daemon sends), on the
     profile's output IDs and frame format (slipd.dbc's without a profile)."""
     codec_plan = Codec.output_plan(profile)
-    values = tx_values(estimate.out, base.available().index(estimate.method))
+    values = tx_values(estimate.out, registry.spec(estimate.method).wire_id)
     n = len(estimate.t)
     parts = []
     for name in ("SLIPD_STATE", "SLIPD_AUX"):

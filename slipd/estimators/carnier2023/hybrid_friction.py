@@ -1,7 +1,11 @@
 """``hybrid_friction``: the hybrid kinematic-dynamic sideslip and friction observer with the
 slip-based friction classifier of Carnier, Corno, Savaresi 2023 (Fig. 1).
 
-Per tick (kernels in ``slipd.estimators.carnier``, equations in their docstrings):
+``hybrid_friction_nocls`` (a registry variant: ``classifier_enabled`` = 0) is the adaptive
+state observer of Sec. 2 alone, the "pure adaptive observer" the paper compares against in
+Fig. 13, 15 and 16: mu hat starts at MU_NOMINAL and adapts only through eq. 14-15.
+
+Per tick (kernels in ``observer`` and ``classifier``, equations in their docstrings):
 
 1. inputs at the CoG, roll gravity removed from ay (the paper's "standard filtering");
 2. V_x tilde from the wheels: load-transfer weighted mean (eq. 3), IQR outlier rejection and the
@@ -20,7 +24,7 @@ the classifier's boolean; the paper's classifier is binary, so 2 "medium" is nev
 0 when the classifier is disabled), roll of the gravity compensation, status bits.
 
 Sign convention: ISO 8855 inside and out; the paper's eq. 1 and 9 are converted as the
-``carnier`` module docstring explains (its omega_z is -r; eq. 9's front yaw term corrected).
+``observer`` module docstring explains (its omega_z is -r; eq. 9's front yaw term corrected).
 
 Parameters (``DEFAULTS``) - from Table 1: gamma-, gamma+ (35 deg), K_x,min 0.2, K_x,max 5,
 k_y,min 0.3, k_y,max 10, beta_dot bar 0.3 deg/s, k_mu 0.007, K_mu bar 0.08, beta_dot bar_mu 7
@@ -50,7 +54,7 @@ where that is meaningful; measured on the simulator suite:
 - ``beta_rate_highpass`` = 0.3 s: the k_y and mu switches (eq. 12, 14) see the kinematic
   beta_dot of eq. 13 minus its low-pass. A road bank or an ay offset adds a constant to eq. 13
   (6 deg of bank: 2.6 deg/s at 22 m/s, Table 1's threshold is 0.3 deg/s) that holds k_y at
-  k_y,min for good; banked_road went from 11.7 deg RMS (raw) to 0.30 deg.
+  k_y,min for good (the banked road's figures: benchmarks/MEASUREMENTS.md).
 - eq. 11's xi as the secant from vy_ref = l_r r (zero rear slip) to the estimate, with
   |xi| >= ``xi_floor`` |xi_lin| = 0.5: the tangent vanishes once the estimate has drifted into
   the saturated range and the drift then never comes back (a -37 deg runaway on the endurance
@@ -91,31 +95,31 @@ import math
 import numba as nb
 import numpy as np
 
-from slipd.channels import (
-    ST_INPUT_TIMEOUT,
-    ST_NOT_CONVERGED,
-    ST_RESET,
-    In,
-    Out,
-    Veh,
-)
-from slipd.estimators.carnier import (
+from slipd.channels import ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, Veh
+from slipd.errors import ConfigError
+from slipd.estimators.carnier2023.classifier import classifier_update, classify_tick
+from slipd.estimators.carnier2023.observer import (
+    LAYOUT,
     S,
-    channel,
-    classifier_update,
-    classify_tick,
-    compensate_wheel_speeds,
     kx_gain,
     linear_slope,
     new_state,
     observer_step,
-    read_inputs,
     reference_tyre,
     reset_observer,
     state_is_finite,
     vx_from_wheels_lt,
-    wheel_accelerations,
 )
+from slipd.estimators.common.filters import lowpass
+from slipd.estimators.common.inputs import (
+    ImuMemory,
+    read_inputs,
+    wheel_accelerations,
+    wheel_speeds,
+)
+from slipd.estimators.common.kinematics import compensate_wheel_speeds, kinematic_beta_rate
+from slipd.estimators.common.outputs import held_sigma, write_outputs
+from slipd.estimators.common.vehicle import require_vehicle
 
 DEG = math.pi / 180.0
 
@@ -192,7 +196,7 @@ DEFAULTS = {
     "kx_max": 5.0,
     # slipd: eq. 5 sums four derivatives; at 10 Hz (Selmanaj's filters) the wheel-speed noise
     # alone sums to ~10 m/s^2 at motorway speed and K_x sat at K_x,min, so a grade's ax
-    # bias (g sin 4 % = 0.4 m/s^2) put vx off by 2 m/s; 2 Hz and 6 m/s^2: vx RMS 0.08 m/s
+    # bias (g sin 4 % = 0.4 m/s^2) put vx off by 2 m/s (benchmarks/MEASUREMENTS.md)
     "delta_ax_threshold": 6.0,
     "wheel_acc_cutoff_hz": 2.0,
     "ky_min": 0.3,
@@ -246,27 +250,17 @@ _TYRE_PARAMS = (
     PARAMS.TYRE_A_CF, PARAMS.TYRE_B_CF, PARAMS.TYRE_A_KF, PARAMS.TYRE_B_KF,
     PARAMS.TYRE_A_CR, PARAMS.TYRE_B_CR, PARAMS.TYRE_A_KR, PARAMS.TYRE_B_KR,
 )  # fmt: skip
-
-
-def validate_vehicle(vehicle: np.ndarray) -> None:
-    """Refuse a vehicle vector the observer cannot use (names the element)."""
-    from slipd.errors import ConfigError
-
-    if vehicle.shape != (len(Veh),):
-        raise ConfigError(f"vehicle vector has shape {vehicle.shape}, expected ({len(Veh)},)")
-    for field in (
-        Veh.MASS, Veh.LF, Veh.LR, Veh.TRACK_F, Veh.TRACK_R, Veh.H_COG, Veh.WHEEL_RADIUS,
-        Veh.CORNERING_STIFFNESS_F, Veh.CORNERING_STIFFNESS_R, Veh.MU_NOMINAL,
-    ):  # fmt: skip
-        value = float(vehicle[field])
-        if not (np.isfinite(value) and value > 0.0):
-            raise ConfigError(f"vehicle {field.name.lower()} = {value}: must be finite and > 0")
+_IMU = int(S.IMU)
+_ROLL = _IMU + int(ImuMemory.ROLL)
+_WHEEL_ACC = int(S.WHEEL_ACC)
+#: m/s of lateral velocity the held sigma_beta stands for ("unknown")
+HELD_SIGMA_VY = 1.0
+#: Out.FRICTION_CLASS of the classifier's two classes (its boolean; no "medium")
+CLASS_HIGH, CLASS_LOW = 3.0, 1.0
 
 
 def tyre_coefficients(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     """The eight eq. 10 coefficients: the params where set, else the vehicle's references."""
-    from slipd.errors import ConfigError
-
     mu_low = float(params[PARAMS.MU_LOW])
     if not 0.0 < mu_low < float(vehicle[Veh.MU_NOMINAL]):
         raise ConfigError(f"mu_low = {mu_low}: must lie between 0 and the vehicle's peak friction")
@@ -276,37 +270,76 @@ def tyre_coefficients(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
 
 
 def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
-    """A fresh state vector (``carnier.S``); the observer starts on the first wheel speed."""
-    validate_vehicle(vehicle)
+    """A fresh state vector (``observer.LAYOUT``); the observer starts on the first wheel
+    speed."""
+    require_vehicle("hybrid_friction", vehicle, (
+        Veh.MASS, Veh.LF, Veh.LR, Veh.TRACK_F, Veh.TRACK_R, Veh.H_COG, Veh.WHEEL_RADIUS,
+        Veh.CORNERING_STIFFNESS_F, Veh.CORNERING_STIFFNESS_R, Veh.MU_NOMINAL,
+    ))  # fmt: skip
     mu_init = float(params[PARAMS.MU_INIT])
     if not np.isfinite(mu_init):
         mu_init = float(vehicle[Veh.MU_NOMINAL])
     # the classifier's boolean starts on the side of the initial friction
     mu_mid = 0.5 * (float(vehicle[Veh.MU_NOMINAL]) + float(params[PARAMS.MU_LOW]))
     state = new_state(mu_init, mu_init >= mu_mid)
-    state[S.TYRE_A_CF : S.TYRE_B_KR + 1] = tyre_coefficients(params, vehicle)
+    tyre = LAYOUT.span("TYRE")
+    state[tyre.start : tyre.stop] = tyre_coefficients(params, vehicle)
     return state
 
 
-@nb.njit(cache=True)
-def _write_outputs(out, state, ax, ay, yaw_rate, sigma, classifier_on, status):
-    vx = state[S.VX]
-    vy = state[S.VY]
-    speed2 = vx * vx + vy * vy
-    out[Out.BETA] = math.atan2(vy, vx)
-    # beta' = (vx vy' - vy vx') / V^2 with the kinematic model: (vx ay - vy ax) / V^2 - r
-    out[Out.BETA_RATE] = (vx * ay - vy * ax) / speed2 - yaw_rate if speed2 > 1.0 else 0.0
-    out[Out.VX] = vx
-    out[Out.VY] = vy
-    out[Out.MU] = state[S.MU]
-    out[Out.SIGMA_BETA] = sigma
-    roll = state[S.ROLL]
-    out[Out.ROLL] = roll if math.isfinite(roll) else 0.0
+@nb.njit(cache=True, inline="always")
+def _write(out, state, beta, beta_rate, sigma, classifier_on, status):
+    friction_class = 0.0
     if classifier_on:
-        out[Out.FRICTION_CLASS] = 3.0 if state[S.CLASS_HIGH] > 0.5 else 1.0
-    else:
-        out[Out.FRICTION_CLASS] = 0.0
-    out[Out.STATUS] = float(status)
+        friction_class = CLASS_HIGH if state[S.CLASS_HIGH] > 0.5 else CLASS_LOW
+    write_outputs(out, beta, beta_rate, state[S.VX], state[S.VY], state[S.MU], sigma,
+                  state[_ROLL], friction_class, status)  # fmt: skip
+
+
+@nb.njit(cache=True, inline="always")
+def _wheels(state, u, params, vehicle, ax, ay, yaw_rate, steer, dt, status):
+    """Sec. 2.1: the wheel-speed rates (eq. 5, 21), the speeds referred to the CoG x axis and
+    V_x tilde (eq. 3-4); INPUT_TIMEOUT when a wheel is missing. Returns (vx_tilde, vx_ok,
+    rates, flags, compensated speeds, status)."""
+    a_fl, a_fr, a_rl, a_rr, ok_fl, ok_fr, ok_rl, ok_rr = wheel_accelerations(
+        state, _WHEEL_ACC, u, dt, params[PARAMS.WHEEL_ACC_CUTOFF_HZ]
+    )
+    v_fl, v_fr, v_rl, v_rr, _, _, _, _ = wheel_speeds(u)
+    c_fl, c_fr, c_rl, c_rr = compensate_wheel_speeds(
+        v_fl if ok_fl else 0.0, v_fr if ok_fr else 0.0, v_rl if ok_rl else 0.0,
+        v_rr if ok_rr else 0.0, steer, yaw_rate, vehicle[Veh.TRACK_F], vehicle[Veh.TRACK_R],
+    )  # fmt: skip
+    vx_tilde, n_wheels = vx_from_wheels_lt(
+        state, c_fl, c_fr, c_rl, c_rr, ok_fl, ok_fr, ok_rl, ok_rr, ax, ay, vehicle,
+        params[PARAMS.GAMMA_MINUS], params[PARAMS.GAMMA_PLUS],
+        params[PARAMS.MIN_TRANSFER_ACCEL], params[PARAMS.IQR_SCALE],
+    )  # fmt: skip
+    if n_wheels < 4:
+        status |= ST_INPUT_TIMEOUT
+    return (vx_tilde, n_wheels > 0, (a_fl, a_fr, a_rl, a_rr), (ok_fl, ok_fr, ok_rl, ok_rr),
+            (c_fl, c_fr, c_rl, c_rr), status)
+
+
+@nb.njit(cache=True, inline="always")
+def _classify(state, u, params, vehicle, ax, ay, yaw_acc, steer, alpha_f, alpha_r, force_f_high,
+              force_r_high, speeds, speeds_ok, rates, vx_prior):  # fmt: skip
+    """Sec. 3: the map points of this tick and the classifier's switch (``classifier``)."""
+    any_high, any_low = classify_tick(
+        state, u, ax, ay, yaw_acc, steer, alpha_f, alpha_r, force_f_high, force_r_high,
+        speeds, speeds_ok, rates, vx_prior, vehicle,
+        params[PARAMS.MU_LOW], params[PARAMS.TYRE_K_FLOOR],
+        (params[PARAMS.BURCKHARDT_HIGH_C1], params[PARAMS.BURCKHARDT_HIGH_C2],
+         params[PARAMS.BURCKHARDT_HIGH_C3]),
+        (params[PARAMS.BURCKHARDT_LOW_C1], params[PARAMS.BURCKHARDT_LOW_C2],
+         params[PARAMS.BURCKHARDT_LOW_C3]),
+        params[PARAMS.CLASS_SLIP_MIN], params[PARAMS.CLASS_ALPHA_MIN],
+        params[PARAMS.CLASS_BAND], params[PARAMS.CLASS_HIGH_MARGIN],
+        params[PARAMS.CLASS_MIN_GAP], params[PARAMS.CLASS_YAW_MOMENT_SPLIT] > 0.5,
+    )  # fmt: skip
+    classifier_update(
+        state, any_high, any_low, params[PARAMS.CLASS_PERSISTENCE_TICKS],
+        vehicle[Veh.MU_NOMINAL], params[PARAMS.MU_LOW],
+    )  # fmt: skip
 
 
 @nb.njit(cache=True)
@@ -315,41 +348,28 @@ def step(state, u, params, vehicle, dt, out):
     nothing."""
     min_speed = params[PARAMS.MIN_SPEED]
     classifier_on = params[PARAMS.CLASSIFIER_ENABLED] > 0.5
-    ax, ay, yaw_rate, yaw_acc, steer, ay_ok, status = read_inputs(
-        state, u, vehicle, params[PARAMS.YAW_ACC_CUTOFF_HZ], params[PARAMS.ROLL_TIME_CONSTANT], dt
-    )
-    # wheel speeds: their rates (eq. 5, 21) and the speeds referred to the CoG x axis
-    a_fl, a_fr, a_rl, a_rr, ok_fl, ok_fr, ok_rl, ok_rr = wheel_accelerations(
-        state, u, dt, params[PARAMS.WHEEL_ACC_CUTOFF_HZ]
-    )
-    c_fl, c_fr, c_rl, c_rr = compensate_wheel_speeds(
-        u[In.WHEEL_SPEED_FL] if ok_fl else 0.0, u[In.WHEEL_SPEED_FR] if ok_fr else 0.0,
-        u[In.WHEEL_SPEED_RL] if ok_rl else 0.0, u[In.WHEEL_SPEED_RR] if ok_rr else 0.0,
-        steer, yaw_rate, vehicle[Veh.TRACK_F], vehicle[Veh.TRACK_R],
+    ax, ay, yaw_rate, yaw_acc, steer, _, _, ay_ok, yaw_rate_ok, _, status = read_inputs(
+        state, _IMU, u, vehicle, state[S.PREV_YAW_RATE], params[PARAMS.YAW_ACC_CUTOFF_HZ],
+        params[PARAMS.ROLL_TIME_CONSTANT], True, dt,
     )  # fmt: skip
-    vx_tilde, n_wheels = vx_from_wheels_lt(
-        state, c_fl, c_fr, c_rl, c_rr, ok_fl, ok_fr, ok_rl, ok_rr, ax, ay, vehicle,
-        params[PARAMS.GAMMA_MINUS], params[PARAMS.GAMMA_PLUS],
-        params[PARAMS.MIN_TRANSFER_ACCEL], params[PARAMS.IQR_SCALE],
-    )  # fmt: skip
-    vx_ok = n_wheels > 0
-    if n_wheels < 4:
-        status |= ST_INPUT_TIMEOUT
+    if yaw_rate_ok:
+        state[S.PREV_YAW_RATE] = yaw_rate
+    vx_tilde, vx_ok, rates, wheels_ok, speeds, status = _wheels(
+        state, u, params, vehicle, ax, ay, yaw_rate, steer, dt, status
+    )
     running = state[S.INITIALISED] > 0.5 and state[S.VX] >= min_speed
     if not running:
         # start-up, standstill or crawling: slip angles undefined, hold vy = 0, vx = V_x tilde
         if vx_ok:
             reset_observer(state, vx_tilde, state[S.MU_DEFAULT])
             state[S.INITIALISED] = 1.0
-        sigma = math.atan(1.0 / max(state[S.VX], min_speed))  # "unknown": 1 m/s of vy
-        _write_outputs(out, state, ax, ay, yaw_rate, sigma, classifier_on,
-                       status | ST_NOT_CONVERGED)  # fmt: skip
-        out[Out.BETA] = 0.0
-        out[Out.BETA_RATE] = 0.0
+        _write(out, state, 0.0, 0.0, held_sigma(HELD_SIGMA_VY, state[S.VX], min_speed),
+               classifier_on, status | ST_NOT_CONVERGED)  # fmt: skip
         return
     kx, _ = kx_gain(
-        a_fl, a_fr, a_rl, a_rr, ok_fl, ok_fr, ok_rl, ok_rr, ax,
-        params[PARAMS.DELTA_AX_THRESHOLD], params[PARAMS.KX_MIN], params[PARAMS.KX_MAX],
+        rates[0], rates[1], rates[2], rates[3], wheels_ok[0], wheels_ok[1], wheels_ok[2],
+        wheels_ok[3], ax, params[PARAMS.DELTA_AX_THRESHOLD], params[PARAMS.KX_MIN],
+        params[PARAMS.KX_MAX],
     )  # fmt: skip
     vx_prior = state[S.VX]
     _, innovation, alpha_f, alpha_r, ay_used, force_f_high, force_r_high = observer_step(
@@ -362,44 +382,30 @@ def step(state, u, params, vehicle, dt, out):
         params[PARAMS.XI_FLOOR],
     )  # fmt: skip
     if classifier_on and ay_ok:
-        any_high, any_low = classify_tick(
-            state, u, ax, ay, yaw_acc, steer, alpha_f, alpha_r, force_f_high, force_r_high,
-            (c_fl, c_fr, c_rl, c_rr),
-            (ok_fl, ok_fr, ok_rl, ok_rr), (a_fl, a_fr, a_rl, a_rr), vx_prior, vehicle,
-            params[PARAMS.MU_LOW], params[PARAMS.TYRE_K_FLOOR],
-            (params[PARAMS.BURCKHARDT_HIGH_C1], params[PARAMS.BURCKHARDT_HIGH_C2],
-             params[PARAMS.BURCKHARDT_HIGH_C3]),
-            (params[PARAMS.BURCKHARDT_LOW_C1], params[PARAMS.BURCKHARDT_LOW_C2],
-             params[PARAMS.BURCKHARDT_LOW_C3]),
-            params[PARAMS.CLASS_SLIP_MIN], params[PARAMS.CLASS_ALPHA_MIN],
-            params[PARAMS.CLASS_BAND], params[PARAMS.CLASS_HIGH_MARGIN],
-            params[PARAMS.CLASS_MIN_GAP], params[PARAMS.CLASS_YAW_MOMENT_SPLIT] > 0.5,
-        )  # fmt: skip
-        classifier_update(
-            state, any_high, any_low, params[PARAMS.CLASS_PERSISTENCE_TICKS],
-            vehicle[Veh.MU_NOMINAL], params[PARAMS.MU_LOW],
-        )  # fmt: skip
+        _classify(state, u, params, vehicle, ax, ay, yaw_acc, steer, alpha_f, alpha_r,
+                  force_f_high, force_r_high, speeds, wheels_ok, rates, vx_prior)  # fmt: skip
     # quality figure: low-passed squared lateral innovation
-    gain = min(dt / params[PARAMS.INNOVATION_TIME_CONSTANT], 1.0)
     if ay_ok and math.isfinite(innovation):
-        state[S.INNOVATION_VAR] += gain * (innovation * innovation - state[S.INNOVATION_VAR])
+        lowpass(state, S.INNOVATION_VAR, innovation * innovation, dt,
+                params[PARAMS.INNOVATION_TIME_CONSTANT])  # fmt: skip
     if not (state_is_finite(state) and abs(state[S.VY]) <= state[S.VX]):
         # non-finite or outside any single-track model's domain (> 45 deg): restart
         reset_observer(state, vx_tilde if vx_ok else 0.0, state[S.MU_DEFAULT])
         if not vx_ok:
             state[S.INITIALISED] = 0.0
-        status |= ST_RESET | ST_NOT_CONVERGED
-        _write_outputs(out, state, ax, ay_used, yaw_rate, math.atan(1.0 / max(state[S.VX],
-                       min_speed)), classifier_on, status)  # fmt: skip
-        out[Out.BETA_RATE] = 0.0
+        _write(out, state, math.atan2(state[S.VY], state[S.VX]), 0.0,
+               held_sigma(HELD_SIGMA_VY, state[S.VX], min_speed), classifier_on,
+               status | ST_RESET | ST_NOT_CONVERGED)  # fmt: skip
         return
     state[S.TICKS] += 1.0
     vx = state[S.VX]
+    vy = state[S.VY]
     sigma_vy = math.sqrt(state[S.INNOVATION_VAR]) / abs(linear_slope(vx, vehicle, state))
     sigma = math.atan(sigma_vy / vx) + params[PARAMS.SIGMA_BETA_FLOOR]
     if state[S.TICKS] < params[PARAMS.SETTLE_TICKS]:
         status |= ST_NOT_CONVERGED
-    _write_outputs(out, state, ax, ay_used, yaw_rate, sigma, classifier_on, status)
+    _write(out, state, math.atan2(vy, vx), kinematic_beta_rate(vx, vy, ax, ay_used, yaw_rate),
+           sigma, classifier_on, status)  # fmt: skip
 
 
 @nb.njit(cache=True)
@@ -408,4 +414,4 @@ def run_ticks(state, U, params, vehicle, dt, OUT):
         step(state, U[k], params, vehicle, dt, OUT[k])
 
 
-__all__ = ["DEFAULTS", "PARAMS", "channel", "init", "run_ticks", "step", "tyre_coefficients"]
+__all__ = ["DEFAULTS", "LAYOUT", "PARAMS", "init", "run_ticks", "step", "tyre_coefficients"]

@@ -1,4 +1,5 @@
-"""Tests of the shared preprocessing blocks (slipd.estimators.preprocess).
+"""Tests of the shared building blocks (slipd.estimators.common: filters, kinematics, inputs)
+and of Selmanaj's Vx from the wheels (selmanaj2017.wheel_speed).
 
 Each block is checked against physics built independently here (rigid-body kinematics with
 numpy's cross product, a plain-Python reimplementation of eq. 11-13) rather than against
@@ -15,7 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from slipd.channels import G
-from slipd.estimators import preprocess as pp
+from slipd.estimators.common import filters, inputs, kinematics
+from slipd.estimators.selmanaj2017 import wheel_speed
 
 DT = 0.01
 finite = st.floats(min_value=-5.0, max_value=5.0, allow_nan=False)
@@ -26,11 +28,11 @@ finite = st.floats(min_value=-5.0, max_value=5.0, allow_nan=False)
 
 def test_derivative_filter_starts_without_spike_and_follows_a_ramp() -> None:
     buf = np.full(1, np.nan)
-    assert pp.derivative_filter(buf, 0, 100.0, DT, 10.0) == 0.0
+    assert filters.derivative_filter(buf, 0, 100.0, DT, 10.0) == 0.0
     slope = 2.5
     derivative = 0.0
     for k in range(1, 100):
-        derivative = pp.derivative_filter(buf, 0, 100.0 + slope * k * DT, DT, 10.0)
+        derivative = filters.derivative_filter(buf, 0, 100.0 + slope * k * DT, DT, 10.0)
     assert derivative == pytest.approx(slope, rel=1e-9)
 
 
@@ -39,7 +41,7 @@ def test_derivative_filter_matches_the_continuous_10hz_filter_at_1hz() -> None:
     buf = np.full(1, np.nan)
     w = 2.0 * math.pi
     t = np.arange(0.0, 6.0, DT)
-    out = np.array([pp.derivative_filter(buf, 0, math.sin(w * tk), DT, 10.0) for tk in t])
+    out = np.array([filters.derivative_filter(buf, 0, math.sin(w * tk), DT, 10.0) for tk in t])
     amplitude = np.max(np.abs(out[t > 3.0]))
     expected = w / math.sqrt(1.0 + (w / (2.0 * math.pi * 10.0)) ** 2)
     assert amplitude == pytest.approx(expected, rel=0.05)
@@ -49,7 +51,7 @@ def test_lowpass_settles_with_its_time_constant() -> None:
     buf = np.zeros(1)
     tau = 0.5
     for _ in range(int(tau / DT)):
-        pp.lowpass(buf, 0, 1.0, DT, tau)
+        filters.lowpass(buf, 0, 1.0, DT, tau)
     assert buf[0] == pytest.approx(1.0 - math.exp(-1.0), abs=0.01)
 
 
@@ -71,7 +73,7 @@ def _imu_acceleration(a_cog, omega, omega_dot, r):
 def test_translate_to_cog_inverts_rigid_body_kinematics(a_cog, omega, omega_dot, r) -> None:
     a_cog, omega, omega_dot, r = map(np.asarray, (a_cog, omega, omega_dot, r))
     a_imu = _imu_acceleration(a_cog, omega, omega_dot, r)
-    got = pp.translate_to_cog(*a_imu, *omega, *omega_dot, *r)
+    got = kinematics.translate_to_cog(*a_imu, *omega, *omega_dot, *r)
     np.testing.assert_allclose(got, a_cog, atol=1e-9)
 
 
@@ -80,17 +82,17 @@ def test_translate_to_cog_inverts_rigid_body_kinematics(a_cog, omega, omega_dot,
 def test_planar_translation_is_the_full_one_without_roll_and_pitch(
     ax, ay, yaw_rate, yaw_acc, imu_x, imu_y
 ) -> None:
-    full = pp.translate_to_cog(
+    full = kinematics.translate_to_cog(
         ax, ay, 0.0, 0.0, 0.0, yaw_rate, 0.0, 0.0, yaw_acc, imu_x, imu_y, 0.0
     )
-    planar = pp.translate_to_cog_planar(ax, ay, yaw_rate, yaw_acc, imu_x, imu_y)
+    planar = kinematics.translate_to_cog_planar(ax, ay, yaw_rate, yaw_acc, imu_x, imu_y)
     assert planar == pytest.approx(full[:2], abs=1e-12)
 
 
 def test_imu_ahead_of_cog_in_steady_turn_feels_centripetal_pull_backwards() -> None:
     # Sign check in words: IMU 1 m ahead, steady left turn at 0.5 rad/s: the IMU sees an extra
     # -r^2 x = -0.25 m/s^2 along x that the CoG does not have.
-    ax_cog, ay_cog = pp.translate_to_cog_planar(-0.25, 0.0, 0.5, 0.0, 1.0, 0.0)
+    ax_cog, ay_cog = kinematics.translate_to_cog_planar(-0.25, 0.0, 0.5, 0.0, 1.0, 0.0)
     assert ax_cog == pytest.approx(0.0)
     assert ay_cog == pytest.approx(0.0)
 
@@ -99,10 +101,10 @@ def test_imu_ahead_of_cog_in_steady_turn_feels_centripetal_pull_backwards() -> N
 
 
 def test_static_roll_gain_rolls_right_side_down_in_a_left_turn() -> None:
-    gain = pp.roll_static_gain(1093.3, 0.5749, 41780.0)
+    gain = kinematics.roll_static_gain(1093.3, 0.5749, 41780.0)
     assert gain == pytest.approx(1093.3 * 0.5749 / 41780.0)
     assert gain > 0.0  # ay > 0 (left turn) -> roll > 0 (ISO: right side down)
-    assert pp.roll_static_gain(1000.0, 0.5, 0.0) == 0.0
+    assert kinematics.roll_static_gain(1000.0, 0.5, 0.0) == 0.0
 
 
 def test_static_roll_with_measured_ay_keeps_the_gravity_moment() -> None:
@@ -110,7 +112,7 @@ def test_static_roll_with_measured_ay_keeps_the_gravity_moment() -> None:
     mass, arm, stiffness, ay = 1093.3, 0.5749, 41780.0, 8.0
     phi_true = mass * arm * ay / (stiffness - mass * arm * G)
     ay_measured = ay + G * math.sin(phi_true)
-    phi = pp.roll_static_gain(mass, arm, stiffness) * ay_measured
+    phi = kinematics.roll_static_gain(mass, arm, stiffness) * ay_measured
     assert phi == pytest.approx(phi_true, rel=1e-3)
 
 
@@ -125,7 +127,8 @@ def test_complementary_filter_tracks_roll_dynamics_the_static_model_misses() -> 
     est = []
     for tk in t:
         roll_rate = amp * w * math.cos(w * tk)
-        est.append(pp.roll_complementary_filter(buf, 0, 0.0, roll_rate, True, DT, 0.015, 0.5))
+        est.append(kinematics.roll_complementary_filter(buf, 0, 0.0, roll_rate, True, DT, 0.015,
+                                                        0.5))
     est = np.array(est)
     truth = amp * np.sin(w * t)
     tail = t > 3.0
@@ -136,76 +139,77 @@ def test_complementary_filter_bounds_a_roll_rate_offset_and_converges_to_static(
     buf = np.full(1, np.nan)
     gain, tau, offset, ay = 0.015, 0.5, 0.01, 4.0
     for _ in range(1000):
-        roll = pp.roll_complementary_filter(buf, 0, ay, offset, True, DT, gain, tau)
+        roll = kinematics.roll_complementary_filter(buf, 0, ay, offset, True, DT, gain, tau)
     # phi -> phi_static + offset * tau, not a ramp.
     assert roll == pytest.approx(gain * ay + offset * tau, rel=1e-3)
     # Roll rate invalid: the gyro (and its offset) is ignored.
     for _ in range(1000):
-        roll = pp.roll_complementary_filter(buf, 0, ay, 5.0, False, DT, gain, tau)
+        roll = kinematics.roll_complementary_filter(buf, 0, ay, 5.0, False, DT, gain, tau)
     assert roll == pytest.approx(gain * ay, rel=1e-6)
 
 
 def test_gravity_compensation_removes_the_roll_component() -> None:
     ay_true, roll = 3.0, 0.04
-    assert pp.compensate_gravity_ay(ay_true + G * math.sin(roll), roll) == pytest.approx(ay_true)
+    measured = ay_true + G * math.sin(roll)
+    assert kinematics.compensate_gravity_ay(measured, roll) == pytest.approx(ay_true)
 
 
 # ----------------------------------------------------------------------------- offsets
 
 
 def test_gyro_offset_settles_in_the_paper_time_at_standstill_and_freezes_when_moving() -> None:
-    buf = np.zeros(pp.OFFSETS_LEN)
+    buf = np.zeros(len(inputs.Offsets))
     true_offset = 0.01
     rng = np.random.default_rng(0)
-    n_settle = int(pp.GYRO_OFFSET_SETTLING_S / DT)
+    n_settle = int(inputs.GYRO_OFFSET_SETTLING_S / DT)
     for _ in range(n_settle):
         measured = true_offset + 0.002 * rng.standard_normal()
-        pp.update_gyro_offset(buf, 0, pp.Offsets.YAW_RATE, measured, True, DT, 150.0)
+        inputs.update_gyro_offset(buf, 0, inputs.Offsets.YAW_RATE, measured, True, DT, 150.0)
     # 2 % settling criterion (plus noise).
-    assert buf[pp.Offsets.YAW_RATE] == pytest.approx(true_offset, rel=0.03)
-    held = buf[pp.Offsets.YAW_RATE]
+    assert buf[inputs.Offsets.YAW_RATE] == pytest.approx(true_offset, rel=0.03)
+    held = buf[inputs.Offsets.YAW_RATE]
     for _ in range(1000):  # moving: a turning car's yaw rate must not leak in
-        pp.update_gyro_offset(buf, 0, pp.Offsets.YAW_RATE, 0.5, False, DT, 150.0)
-    assert buf[pp.Offsets.YAW_RATE] == held
+        inputs.update_gyro_offset(buf, 0, inputs.Offsets.YAW_RATE, 0.5, False, DT, 150.0)
+    assert buf[inputs.Offsets.YAW_RATE] == held
 
 
 def test_standstill_timer_needs_all_wheels_valid_and_slow() -> None:
-    buf = np.zeros(pp.OFFSETS_LEN)
+    buf = np.zeros(len(inputs.Offsets))
     for _ in range(50):
-        pp.update_standstill(buf, 0, 0.0, True, DT, 0.05)
-    assert buf[pp.Offsets.STANDSTILL_TIME] == pytest.approx(0.5)
-    assert pp.update_standstill(buf, 0, 0.0, False, DT, 0.05) == 0.0
-    pp.update_standstill(buf, 0, 0.0, True, DT, 0.05)
-    assert pp.update_standstill(buf, 0, 1.0, True, DT, 0.05) == 0.0
+        inputs.update_standstill(buf, 0, 0.0, True, DT, 0.05)
+    assert buf[inputs.Offsets.STANDSTILL_TIME] == pytest.approx(0.5)
+    assert inputs.update_standstill(buf, 0, 0.0, False, DT, 0.05) == 0.0
+    inputs.update_standstill(buf, 0, 0.0, True, DT, 0.05)
+    assert inputs.update_standstill(buf, 0, 1.0, True, DT, 0.05) == 0.0
 
 
 def test_ax_offset_activation_follows_the_paper_conditions() -> None:
-    assert pp.ax_offset_active(10.0, 0.5, 0.0, 1.0)
-    assert not pp.ax_offset_active(0.5, 0.5, 0.0, 1.0)  # not moving
-    assert not pp.ax_offset_active(10.0, 1.2, 0.0, 1.0)  # |ax| >= 1 m/s^2
-    assert not pp.ax_offset_active(10.0, 0.5, math.radians(6.0), 1.0)  # |r| > 5 deg/s
-    assert pp.ax_offset_active(10.0, -0.9, -math.radians(4.9), 1.0)
+    assert inputs.ax_offset_active(10.0, 0.5, 0.0, 1.0)
+    assert not inputs.ax_offset_active(0.5, 0.5, 0.0, 1.0)  # not moving
+    assert not inputs.ax_offset_active(10.0, 1.2, 0.0, 1.0)  # |ax| >= 1 m/s^2
+    assert not inputs.ax_offset_active(10.0, 0.5, math.radians(6.0), 1.0)  # |r| > 5 deg/s
+    assert inputs.ax_offset_active(10.0, -0.9, -math.radians(4.9), 1.0)
 
 
 def test_ax_offset_converges_to_the_accelerometer_bias() -> None:
-    buf = np.zeros(pp.OFFSETS_LEN)
+    buf = np.zeros(len(inputs.Offsets))
     bias = 0.2
     for k in range(int(1500.0 / DT)):
         dvx_dt = 0.5 * math.sin(0.3 * k * DT)  # gentle speed changes
-        pp.update_ax_offset(buf, 0, dvx_dt + bias, dvx_dt, True, DT, 1500.0)
-    assert buf[pp.Offsets.AX] == pytest.approx(bias, rel=0.03)
-    pp.update_ax_offset(buf, 0, 50.0, 0.0, False, DT, 1500.0)  # inactive: held
-    assert buf[pp.Offsets.AY] == 0.0
-    assert buf[pp.Offsets.AX] == pytest.approx(bias, rel=0.03)
+        inputs.update_ax_offset(buf, 0, dvx_dt + bias, dvx_dt, True, DT, 1500.0)
+    assert buf[inputs.Offsets.AX] == pytest.approx(bias, rel=0.03)
+    inputs.update_ax_offset(buf, 0, 50.0, 0.0, False, DT, 1500.0)  # inactive: held
+    assert buf[inputs.Offsets.AY] == 0.0
+    assert buf[inputs.Offsets.AX] == pytest.approx(bias, rel=0.03)
 
 
 def test_ay_offset_eq21_is_unbiased_in_a_steady_turn() -> None:
     # Steady circle: Ay = r vx exactly (vy' = 0); the measured ay carries a bias.
-    buf = np.zeros(pp.OFFSETS_LEN)
+    buf = np.zeros(len(inputs.Offsets))
     bias, yaw_rate, vx = -0.15, 0.3, 15.0
     for _ in range(int(1500.0 / DT)):
-        pp.update_ay_offset(buf, 0, yaw_rate * vx + bias, yaw_rate, vx, True, DT, 1500.0)
-    assert buf[pp.Offsets.AY] == pytest.approx(bias, rel=0.03)
+        inputs.update_ay_offset(buf, 0, yaw_rate * vx + bias, yaw_rate, vx, True, DT, 1500.0)
+    assert buf[inputs.Offsets.AY] == pytest.approx(bias, rel=0.03)
 
 
 # ----------------------------------------------------------------------------- vx from wheels
@@ -238,16 +242,16 @@ def _rolling_wheel_speeds(vx, vy, yaw_rate, steer):
 )
 def test_eq11_compensation_recovers_vx_for_every_wheel(vx, yaw_rate, steer) -> None:
     wheels = _rolling_wheel_speeds(vx, 0.0, yaw_rate, steer)
-    got = pp.compensate_wheel_speeds(*wheels, steer, yaw_rate, TRACK_F, TRACK_R)
+    got = kinematics.compensate_wheel_speeds(*wheels, steer, yaw_rate, TRACK_F, TRACK_R)
     assert got == pytest.approx([vx] * 4, abs=1e-9)
 
 
 def _run_vx(speeds_per_tick, ax, valid=(True, True, True, True), steer=0.0, yaw_rate=0.0):
-    buf = np.full(pp.WHEELS_LEN, np.nan)
+    buf = np.full(len(wheel_speed.Wheels), np.nan)
     vx_prev = math.nan
     mode = math.nan
     for speeds in speeds_per_tick:
-        vx_prev, mode = pp.vx_from_wheels(
+        vx_prev, mode = wheel_speed.vx_from_wheels(
             buf,
             0,
             *speeds,
@@ -273,18 +277,18 @@ def test_weighted_mean_discards_a_spinning_wheel_at_small_ax() -> None:
         spin = max(0.0, (k - 100) * DT * 15.0)
         ticks.append((20.0, 20.0, 20.0 + spin, 20.0))
     vx, mode = _run_vx(ticks, ax=0.3)
-    assert mode == pp.VxMode.WEIGHTED_MEAN
+    assert mode == wheel_speed.VxMode.WEIGHTED_MEAN
     assert vx == pytest.approx(20.0, abs=0.05)  # plain mean would read 20 + 30/4 = 27.5
 
 
 def test_min_selection_discards_spinning_wheels_when_accelerating() -> None:
     vx, mode = _run_vx([(20.0, 20.1, 23.0, 24.0)] * 5, ax=2.0)
-    assert mode == pp.VxMode.MIN and vx == pytest.approx(20.0)
+    assert mode == wheel_speed.VxMode.MIN and vx == pytest.approx(20.0)
 
 
 def test_max_selection_discards_a_locked_wheel_when_braking() -> None:
     vx, mode = _run_vx([(20.0, 0.0, 19.9, 19.8)] * 5, ax=-6.0)
-    assert mode == pp.VxMode.MAX and vx == pytest.approx(20.0)
+    assert mode == wheel_speed.VxMode.MAX and vx == pytest.approx(20.0)
 
 
 def test_locked_wheel_is_also_dropped_by_the_weights_in_gentle_braking() -> None:
@@ -293,19 +297,19 @@ def test_locked_wheel_is_also_dropped_by_the_weights_in_gentle_braking() -> None
     ]
     ticks += [(20.0, 0.0, 20.0, 20.0)] * 50
     vx, mode = _run_vx(ticks, ax=-0.5)
-    assert mode == pp.VxMode.WEIGHTED_MEAN and vx == pytest.approx(20.0, abs=0.05)
+    assert mode == wheel_speed.VxMode.WEIGHTED_MEAN and vx == pytest.approx(20.0, abs=0.05)
 
 
 def test_invalid_wheels_take_no_part_and_none_valid_gives_nan() -> None:
     vx, _ = _run_vx([(20.0, 20.0, 0.0, 99.0)] * 5, ax=0.0, valid=(True, True, False, False))
     assert vx == pytest.approx(20.0)
     vx, mode = _run_vx([(20.0, 20.0, 20.0, 20.0)] * 5, ax=0.0, valid=(False,) * 4)
-    assert math.isnan(vx) and mode == pp.VxMode.NONE
+    assert math.isnan(vx) and mode == wheel_speed.VxMode.NONE
 
 
 def test_median_fallback_when_every_weight_underflows() -> None:
-    buf = np.full(pp.WHEELS_LEN, np.nan)
-    vx, mode = pp.vx_from_wheels(
+    buf = np.full(len(wheel_speed.Wheels), np.nan)
+    vx, mode = wheel_speed.vx_from_wheels(
         buf,
         0,
         10.0,
@@ -327,12 +331,12 @@ def test_median_fallback_when_every_weight_underflows() -> None:
         4.5,
         1.0,
     )
-    assert mode == pp.VxMode.MEDIAN and vx == pytest.approx(11.5)
+    assert mode == wheel_speed.VxMode.MEDIAN and vx == pytest.approx(11.5)
 
 
 def _vx_reference(state, speeds, valid, steer, yaw_rate, ax, vx_prev, thr, s1, s2):
     """Plain-Python eq. 11-13 / Fig. 4 (second implementation for the 1e-12 comparison)."""
-    wc = 2.0 * math.pi * pp.DERIVATIVE_CUTOFF_HZ
+    wc = 2.0 * math.pi * filters.DERIVATIVE_CUTOFF_HZ
     comp = [
         speeds[0] * math.cos(steer) + yaw_rate * TRACK_F / 2,
         speeds[1] * math.cos(steer) - yaw_rate * TRACK_F / 2,
@@ -380,11 +384,11 @@ def _vx_reference(state, speeds, valid, steer, yaw_rate, ax, vx_prev, thr, s1, s
     )
 )
 def test_vx_from_wheels_agrees_with_a_plain_reimplementation(ticks) -> None:
-    buf = np.full(pp.WHEELS_LEN, np.nan)
+    buf = np.full(len(wheel_speed.Wheels), np.nan)
     ref_state = [math.nan] * 4
     vx_prev = ref_prev = math.nan
     for speeds, valid, steer, yaw_rate, ax in ticks:
-        vx_prev, _ = pp.vx_from_wheels(
+        vx_prev, _ = wheel_speed.vx_from_wheels(
             buf,
             0,
             *speeds,

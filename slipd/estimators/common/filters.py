@@ -1,0 +1,67 @@
+"""Discrete filters on scalars with their memory in the caller's state vector.
+
+Each filter keeps its memory at ``buf[i]`` of a caller-owned float64 buffer (a method's state),
+so nothing is allocated per tick. NaN in the memory means "not started": the filter starts at
+the first sample it sees (no start-up transient), so a method sets these slots to NaN at init
+or reset.
+
+From Selmanaj, Corno, Panzani, Savaresi (2017), "Vehicle sideslip estimation: a kinematic based
+approach", section 2.1: continuous-time designs discretised by forward Euler.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+
+#: Cut-off of the derivative filters (Selmanaj section 2.1: "derivative filters with a cutoff
+#: frequency of 10 Hz", designed in continuous time and discretised by forward Euler).
+DERIVATIVE_CUTOFF_HZ = 10.0
+
+
+@nb.njit(cache=True, inline="always")
+def lowpass(buf, i, signal, dt, time_constant):
+    """First-order low-pass y' = (signal - y) / time_constant, forward Euler; returns y.
+
+    ``buf[i]`` is y; NaN starts the filter at ``signal``. The Euler step is clipped at one
+    time constant so a long tick gap cannot make the filter overshoot.
+    """
+    if not math.isfinite(buf[i]):
+        buf[i] = signal
+        return signal
+    gain = dt / time_constant
+    if gain > 1.0:
+        gain = 1.0
+    buf[i] += gain * (signal - buf[i])
+    return buf[i]
+
+
+@nb.njit(cache=True, inline="always")
+def derivative_filter(buf, i, signal, dt, cutoff_hz):
+    """Real derivative filter H(s) = s / (1 + s / wc), wc = 2 pi cutoff_hz, forward Euler.
+
+    Selmanaj section 2.1: cut-off 10 Hz, continuous design discretised by forward Euler (at
+    100 Hz wc*dt = 0.63 < 2, so the discrete filter is stable and close to the continuous one).
+    Realised as wc * (signal - x) with the low-pass state x' = wc (signal - x) in ``buf[i]``.
+    NaN in ``buf[i]`` starts the filter at ``signal`` (derivative 0, no start-up spike).
+    """
+    wc = 2.0 * math.pi * cutoff_hz
+    if not math.isfinite(buf[i]):
+        buf[i] = signal
+        return 0.0
+    derivative = wc * (signal - buf[i])
+    step = wc * dt
+    if step > 1.0:  # a long gap: land on the signal instead of overshooting it
+        step = 1.0
+    buf[i] += step * (signal - buf[i])
+    return derivative
+
+
+@nb.njit(cache=True, inline="always")
+def gaussian_bell(a, sigma_a, b, sigma_b):
+    """exp(-(a^2 / sigma_a^2 + b^2 / sigma_b^2) / 2): Selmanaj eq. 5-7's bivariate Gaussian, 1 at
+    (0, 0), -> 0 when either argument grows (also Chen's straight-running weight)."""
+    x = a / sigma_a
+    y = b / sigma_b
+    return math.exp(-0.5 * (x * x + y * y))

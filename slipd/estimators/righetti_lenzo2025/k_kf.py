@@ -1,0 +1,112 @@
+"""``k_kf``: the kinematic-only Kalman filter baseline of Righetti & Lenzo 2025 (Sec. 4, "K-KF").
+
+The kinematic model of Sec. 2.2: state [vx, vy], inputs [ax, ay] at the CoG, the measured yaw
+rate in the transition matrix (eq. 10-13), the single measurement vx_meas of eq. 5-6 (eq. 14).
+No vehicle or tyre parameter enters (only tracks and IMU position for the pre-processing).
+Sec. 4: "the estimated lateral velocity is set to zero when |r| < 0.01 rad/s, to reduce drift
+during straights". beta = atan2(vy, vx) (eq. 4).
+
+With r = 0 the lateral velocity is unobservable (PBH test, eq. 15-18): its variance grows by
+Q[1,1] every tick, so sigma_beta grows on straights and the status says NOT_CONVERGED there.
+
+Parameters: Q_K, R_K of eq. 30 and the 0.01 rad/s threshold of Sec. 4; initial covariance,
+speed floor, variance cap, yaw-acceleration filter, convergence rule and the pre-processing
+beyond the paper's Sec. 3.1 (see ``filters``) are slipd's own.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from slipd.estimators.common.kalman import per_step
+from slipd.estimators.common.params import build_params
+from slipd.estimators.righetti_lenzo2025.filters import (
+    FILTER_PARAMS,
+    LAYOUT,
+    P0_VX,
+    S,
+    begin_tick,
+    finish_tick,
+    hold,
+    kinematic_predict,
+    kinematic_update,
+    measured_speed,
+    new_state,
+    remember_inputs,
+    write_estimate,
+)
+
+PARAMS, DEFAULTS = build_params(
+    "k_kf",
+    ("Q_VX", 5e-3),  # (m/s)^2 per tick, eq. 30
+    ("Q_VY", 3e-3),  # (m/s)^2 per tick, eq. 30
+    ("R_VX", 2e-3),  # (m/s)^2, eq. 30
+    ("ZERO_VY_YAW_RATE", 0.01),  # rad/s, |r| below which vy is set to zero (Sec. 4)
+    ("P_VY_MAX", 100.0),  # (m/s)^2, cap of the vy variance while vy is unobservable (slipd)
+    *FILTER_PARAMS, P0_VX,
+)  # fmt: skip
+_KIN_P = int(S.KIN_P)
+
+
+def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
+    """A fresh state vector (``filters.LAYOUT``); the filter starts on the first speed sample."""
+    return new_state(vehicle, "k_kf")
+
+
+@nb.njit(cache=True)
+def step(state, u, params, vehicle, dt, out):
+    """One 100 Hz tick of the K-KF; writes every element of ``out``, allocates nothing.
+
+    The dynamic slots of the state are unused.
+    """
+    p0_vy = params[PARAMS.P0_VY]
+    min_speed = params[PARAMS.MIN_SPEED]
+    p0_vx = params[PARAMS.P0_VX]
+    nominal_dt = params[PARAMS.NOMINAL_DT]
+    ax, ay, yaw_rate, steer, ay_ok, _, running, status = begin_tick(
+        state, u, vehicle, params[PARAMS.YAW_ACC_CUTOFF_HZ], params[PARAMS.ROLL_TIME_CONSTANT],
+        params[PARAMS.LEVER_ARM_3D] > 0.5, min_speed, dt,
+    )  # fmt: skip
+    vx_meas, vx_ok, status = measured_speed(u, steer, yaw_rate, vehicle, status)
+    if not running:
+        hold(state, out, vx_meas, vx_ok, ax, ay, yaw_rate, steer, p0_vy, 0.0, p0_vx, min_speed,
+             status)  # fmt: skip
+        return
+    # a priori (eq. 13) with [ax, ay, r] of tick k-1, Q_K of eq. 30. Without ay (invalid) the
+    # kinematic model has no lateral input: the previous one is held (flagged INPUT_TIMEOUT).
+    kinematic_predict(
+        state, state[S.PREV_AX], state[S.PREV_AY], state[S.PREV_YAW_RATE],
+        per_step(params[PARAMS.Q_VX], dt, nominal_dt),
+        per_step(params[PARAMS.Q_VY], dt, nominal_dt), dt,
+    )  # fmt: skip
+    # a posteriori with y = vx_meas, H = [1 0] (eq. 14), R_K of eq. 30
+    kinematic_update(state, vx_meas, vx_ok, params[PARAMS.R_VX], 0.0, False, 1.0)
+    if abs(yaw_rate) < params[PARAMS.ZERO_VY_YAW_RATE]:
+        state[S.KIN_VY] = 0.0  # Sec. 4: vy := 0 on straights against the drift
+    p_yy = state[_KIN_P + 2]
+    p_vy_max = params[PARAMS.P_VY_MAX]
+    if p_yy > p_vy_max:
+        # vy unobservable for long: cap its variance (scaling the covariance row/column keeps P
+        # positive definite) so that a day of straight driving cannot run P to overflow
+        shrink = math.sqrt(p_vy_max / p_yy)
+        state[_KIN_P + 1] *= shrink
+        state[_KIN_P + 2] = p_vy_max
+    remember_inputs(state, ax, ay if ay_ok else state[S.PREV_AY], yaw_rate, steer)
+    status, was_reset = finish_tick(state, out, status, vx_meas, vx_ok, yaw_rate, steer, p0_vy,
+                                    0.0, p0_vx, min_speed)  # fmt: skip
+    if not was_reset:
+        write_estimate(state, out, state[S.KIN_VX], state[S.KIN_VY], state[_KIN_P],
+                       state[_KIN_P + 1], state[_KIN_P + 2], ax, state[S.PREV_AY], yaw_rate,
+                       params[PARAMS.SETTLE_TICKS], params[PARAMS.CONVERGED_SIGMA_BETA], status)
+
+
+@nb.njit(cache=True)
+def run_ticks(state, U, params, vehicle, dt, OUT):
+    for k in range(U.shape[0]):
+        step(state, U[k], params, vehicle, dt, OUT[k])
+
+
+__all__ = ["DEFAULTS", "LAYOUT", "PARAMS", "init", "run_ticks", "step"]

@@ -1,0 +1,791 @@
+"""``gnss_magnetometer``: sideslip and friction from GNSS velocity, a magnetometer and the IMU
+(Yoon, Li, Ahn 2016, Fig. 1-2; kernels in ``heading``, ``sideslip`` and ``friction``).
+
+Three filters in cascade, per 100 Hz tick k:
+
+1. heading EKF x = [psi, phi] (Sec. 3.2): time update eq. 7 with the bias-free yaw and roll
+   rates, measurement update with the three magnetometer axes (eq. 5, the pitch an input, see
+   below; eq. 6 is its pitch-0 case) on every new magnetometer sample, gated by the
+   Mahalanobis distance of the innovation (eq. 4, Sec. 2.2): d^2 > ``gate_chi2`` (chi-square,
+   3 degrees of freedom) replaces H by zero (no update);
+2. sideslip KF x = [vx, bx, vy, by] (Sec. 3.3): time update eq. 9 with a_x, a_y - g sin(phi)
+   at the CoG and r; on every new GNSS sample the earth-frame velocity is rotated into the body
+   frame with the heading and roll *of the instant the receiver sampled it* (eq. 10) and fused
+   with H of eq. 11. Delay (Sec. 2.3, Larsen et al. 1998): the sample is ``gnss_delay`` old when
+   it arrives. The filter keeps its states, covariances and inputs of the last ``BUFFER_TICKS``
+   ticks; a delayed sample is fused at its own tick s and the filter is re-propagated over the
+   stored inputs from s to now. For a linear filter this is the exact result that Larsen's
+   measurement extrapolation approximates (Larsen's contribution is doing it without the
+   re-propagation, which matters for big filters; a 4-state filter re-propagated over 40 ticks
+   is cheap: benchmarks/estimators.py). ``delay_compensation`` = 0 fuses the
+   sample as if it were current (the uncompensated filter, for comparison);
+3. friction EKF x = mu (Sec. 4): f(mu) = mu, h(mu) = a_y of eq. 13 with the slip angles of
+   eq. 14 from the estimated beta and the brush tyre of eq. 15 (eq. 16). The brush model's
+   c_p l^2 comes from the axle cornering stiffness of the vehicle profile (2 c_p l^2 = C_alpha
+   per tyre, the slope of eq. 15 at alpha = 0).
+
+beta = atan2(vy, vx) (eq. 12 prints tan^-1(vx / vy), a typo for vy / vx).
+
+Sign conventions (converted here, at the method's boundary): the paper's earth frame is
+X north, Y west, Z up with the yaw from north toward west; slipd's is east-north-up with the
+heading from east, counter-clockwise (psi = psi_paper + pi / 2, V_west = -V_east), the frame of
+the GNSS channels (In.GNSS_VN / VE / VU). The paper's eq. 8 prints a_x,m = vx' + psi' vy, but its
+eq. 9 (vx' = a_x,m + psi' vy - bx) is the ISO 8855 kinematics used here; body axes, roll and the
+eq. 14 slip angles are ISO 8855 in the paper already.
+
+Beyond the paper (all marked, all slipd's choices, each measured on the simulator suite):
+- Magnetometer calibration. The paper uses offsets "determined by calibration" (Sec. 3.1). A
+  car's magnetometer sits among steel and wiring (hard-iron offsets of several uT against a
+  ~21 uT horizontal field), so slipd learns the calibration on the road: on straights (small
+  yaw rate and r V, where beta ~ 0) the delayed GNSS course is the heading of the magnetometer
+  sample stored at the GNSS sampling tick, and a recursive least-squares fit of
+  m = C [cos psi, sin psi, 1] (``heading.calibration_update``) absorbs hard and soft iron and the
+  declination; samples are levelled with the roll and pitch of their tick, and a sample beyond
+  the chi-square gate is down-weighted (Huber), not dropped, so that a fit gone wrong can come
+  back. Its prior is the site's field (``declination``, ``field_horizontal``, ``inclination``;
+  defaults: central Europe, WMM) with ``cal_sigma_hard_iron`` and ``cal_sigma_soft_iron`` as
+  1-sigma. The first ``align_samples`` calibration samples re-initialise the heading and the
+  sideslip KF (start-up alignment); the KF waits for that alignment (at most
+  ``align_timeout_s``) and the estimate is NOT_CONVERGED until then. Headings the car has not
+  yet driven straight at keep the prior's soft-iron uncertainty (a few degrees of heading).
+- Pitch: eq. 6 sets it to 0, which the paper blames for its public-road degradation (Sec. 5.3).
+  slipd feeds eq. 5 the pitch -bx / g from the sideslip KF's bias state (``pitch_from_bias``).
+- Roll pseudo-measurement: the static roll model (Selmanaj 2017 eq. 16) updates phi with a
+  loose variance (``r_roll_static``); without it an uncalibrated field direction can trade
+  heading for roll (18 deg of roll seen on handling_low_mu).
+- Gate lock-out: when the gate has rejected every sample for ``gate_lockout_s`` while the
+  field's norm matches the earth field's (``field_norm_tolerance``, the paper's basis of
+  disturbance detection, Sec. 2.2) the model, not the field, is wrong: psi restarts from the
+  calibrated magnetometer.
+- Gyro biases b_r, b_p of eq. 7: the paper takes them from standstill; slipd learns them at
+  standstill (``common.inputs.update_gyro_offset``) and trims b_r while driving by integrating the
+  heading corrections (the integral part of a complementary filter, ``yaw_bias_time_constant``).
+- GNSS antenna lever arm (``antenna_x/y/z``, body axes from the CoG): v_ant = v + omega x rho.
+  Default 0: the vehicle profile has no antenna position yet (requested).
+- Friction EKF: updated only when |d a_y / d mu| >= ``mu_min_sensitivity`` (the paper notes the
+  estimate is unreliable without excitation, Sec. 5.2); an innovation beyond ``mu_gate_chi2``
+  is down-weighted (longitudinal forces, which eq. 13 leaves out, and beta errors).
+- Accelerations are moved from the IMU to the CoG (``common.kinematics.translate_to_cog``); below
+  ``min_speed`` beta is reported as 0 (atan2 of two noisy numbers near 0 is no sideslip).
+
+Parameters: the paper publishes no covariances, thresholds or start values; every default
+below is slipd's and says what it was chosen from. Table 1 gives the sensor noise (magnetometer
+0.5 mG = 0.05 uT, IMU 0.02 m/s^2 and 0.08 deg/s); the filters' R and Q are larger because
+they also carry model error (pitch neglected in eq. 6, calibration residual, roll in eq. 9).
+
+Inputs: core IMU, steer and wheel speeds (wheels only for the speed output before the first
+GNSS fix), GNSS velocity and fix, the three magnetometer axes. Without a GNSS fix or a
+magnetometer ever seen the method reports UNAVAILABLE (beta 0, vx from the wheels) and never
+invents the data. New samples are detected by a change of the latched value (u carries no
+per-channel age): a repeated identical sample is skipped, which only loses one sample.
+"""
+
+
+from __future__ import annotations
+
+import enum
+import math
+
+import numba as nb
+import numpy as np
+
+from slipd.channels import (
+    CORE_CHANNELS,
+    ST_DEGRADED,
+    ST_INPUT_TIMEOUT,
+    ST_NOT_CONVERGED,
+    ST_RESET,
+    ST_UNAVAILABLE,
+    G,
+    In,
+    Veh,
+)
+from slipd.errors import ConfigError
+from slipd.estimators.common.inputs import (
+    ImuMemory,
+    Offsets,
+    channel,
+    corner_speed_mean,
+    hold_last,
+    imu_at_cog,
+    reset_imu,
+    update_gyro_offset,
+    update_standstill,
+    wheel_speeds,
+)
+from slipd.estimators.common.kalman import beta_sigma
+from slipd.estimators.common.kinematics import kinematic_beta_rate, vehicle_roll_gain
+from slipd.estimators.common.outputs import held_sigma, write_held, write_outputs
+from slipd.estimators.common.vehicle import require_vehicle
+from slipd.estimators.yoon2016.friction import friction_update
+from slipd.estimators.yoon2016.heading import (
+    calibration_residual,
+    calibration_update,
+    field_norm_error,
+    heading_from_magnetometer,
+    heading_predict,
+    heading_roll_update,
+    heading_update,
+    magnetometer_model,
+    wrap_angle,
+)
+from slipd.estimators.yoon2016.sideslip import (
+    entry,
+    fuse_delayed_gnss,
+    gnss_to_body,
+    kf4_predict,
+    save_entry,
+    start_kf,
+)
+from slipd.estimators.yoon2016.state import (
+    BUFFER_TICKS,
+    CAL_C,
+    CAL_P,
+    CAL_PRIOR,
+    FINITE_END,
+    HEAD,
+    HEAD_P,
+    IMU,
+    KF,
+    KF_P,
+    LAYOUT,
+    OFFSETS,
+    SCRATCH,
+    E,
+    S,
+)
+
+#: Channels whose loss makes the output invalid (the pipeline's required-channel mask).
+REQUIRED = (
+    *CORE_CHANNELS,
+    In.GNSS_VN, In.GNSS_VE, In.GNSS_VU, In.GNSS_FIX,
+    In.MAG_X, In.MAG_Y, In.MAG_Z,
+)  # fmt: skip
+#: s, the tick interval the history's length is counted in (gnss_delay's bound at init)
+NOMINAL_DT = 0.01
+#: speed floor of the held sigma_beta, m/s
+HELD_SPEED_FLOOR = 1.0
+#: sigma_beta where the speed is zero and beta is not defined: the whole circle
+STANDSTILL_SIGMA = math.pi
+_LAST_AX = IMU + int(ImuMemory.LAST_AX)
+_LAST_STEER = IMU + int(ImuMemory.LAST_STEER)
+
+
+@enum.unique
+class PARAMS(enum.IntEnum):
+    # heading EKF (eq. 5-7, Sec. 2.2)
+    Q_PSI = 0  # rad^2/s, yaw random walk: gyro noise and the part of its bias not removed
+    Q_PHI = 1  # rad^2/s, roll random walk
+    R_MAG = 2  # uT^2 per axis: noise + model error of eq. 6 (pitch 0, calibration residual)
+    GATE_CHI2 = 3  # chi-square gate on d^2 (3 dof)
+    GATE_LOCKOUT_S = 4  # s of consecutive rejections before psi is re-initialised (slipd)
+    P0_PSI = 5  # rad^2
+    P0_PHI = 6  # rad^2
+    # site magnetic field: the calibration's prior (slipd)
+    DECLINATION = 7  # rad, east positive
+    INCLINATION = 8  # rad, down positive
+    FIELD_HORIZONTAL = 9  # uT
+    CAL_SIGMA_HARD_IRON = 10  # uT, prior 1-sigma of the offset column
+    CAL_SIGMA_SOFT_IRON = 11  # uT, prior 1-sigma of the cos / sin columns
+    CAL_R = 12  # uT^2, variance of one calibration sample
+    CAL_Q = 13  # uT^2 per sample, random walk of C
+    CAL_MAX_YAW_RATE = 14  # rad/s, "straight": |r| below
+    CAL_MAX_AY = 15  # m/s^2, "straight": centripetal |r V| below (not the measured a_y, whose
+    # gravity compensation needs the roll of the not yet calibrated magnetometer)
+    CAL_MIN_SPEED = 16  # m/s, course defined
+    ALIGN_SAMPLES = 17  # calibration samples that re-initialise psi / before convergence
+    ALIGN_TIMEOUT_S = 18  # s after the first fix the KF waits for a straight to align on
+    # sideslip KF (eq. 9-11)
+    Q_V = 19  # (m/s)^2/s, velocity random walk (accelerometer noise + model error)
+    Q_B = 20  # (m/s^2)^2/s, accelerometer bias random walk
+    R_GNSS = 21  # (m/s)^2, body-frame GNSS velocity (receiver + rotation error)
+    P0_V = 22  # (m/s)^2
+    P0_B = 23  # (m/s^2)^2
+    GNSS_DELAY = 24  # s, receiver latency (Sec. 5: 400 ms)
+    DELAY_COMPENSATION = 25  # 1 = fuse at the sampling tick (Sec. 2.3), 0 = as if current
+    ANTENNA_X = 26  # m, GNSS antenna from the CoG, body axes (slipd)
+    ANTENNA_Y = 27
+    ANTENNA_Z = 28
+    # friction EKF (eq. 13-16)
+    Q_MU = 29  # 1/s, mu random walk
+    R_AY = 30  # (m/s^2)^2
+    P0_MU = 31
+    MU_MIN = 32
+    MU_MAX = 33
+    MU_MIN_SENSITIVITY = 34  # m/s^2 per unit mu: excitation gate (slipd)
+    MU_MIN_SPEED = 35  # m/s
+    MU_CLASS_UPDATES = 36  # excited updates before a friction class is reported
+    # bookkeeping (slipd)
+    SETTLE_TICKS = 37  # ticks after the KF (re)start before convergence may be claimed
+    CONVERGED_SIGMA_BETA = 38  # rad
+    GNSS_OUTAGE_S = 39  # s without a GNSS sample before the estimate counts as unsettled
+    STANDSTILL_SPEED = 40  # m/s, every wheel below it = standstill (gyro offsets)
+    STANDSTILL_DELAY_S = 41  # s of standstill before the gyro offsets learn
+    GYRO_OFFSET_SETTLING_S = 42  # s, settling time of the standstill gyro offset filters
+    YAW_ACC_CUTOFF_HZ = 43  # Hz, derivative filters of the CoG translation
+    R_ROLL_STATIC = 44  # rad^2, roll pseudo-measurement from the static roll model (slipd)
+    MIN_SPEED = 45  # m/s, below it beta is reported as 0 and NOT_CONVERGED (slipd)
+    PITCH_FROM_BIAS = 46  # 1 = pitch -bx / g into eq. 5, 0 = the paper's pitch 0 (eq. 6)
+    MAX_PITCH = 47  # rad, clamp of that pitch estimate
+    YAW_BIAS_TIME_CONSTANT = 48  # s, integral correction of b_r from psi updates; 0 = off
+    MAX_YAW_RATE_BIAS = 49  # rad/s, clamp of that correction
+    FIELD_NORM_TOLERANCE = 50  # uT, |field norm - earth field| for a gate lock-out restart
+    MU_GATE_CHI2 = 51  # chi-square (1 dof): beyond it the a_y sample is down-weighted (slipd)
+
+DEFAULTS = {
+    # the heading EKF is driven by the gyro and corrected at 50 Hz; a small yaw random walk
+    # makes it average the magnetometer over seconds (passing disturbances, pitch errors) and
+    # leave the gyro bias to the integral term below (the sweep: benchmarks/MEASUREMENTS.md)
+    "q_psi": 1e-6,
+    "q_phi": 1e-4,
+    # 1.2 uT per axis: Table 1's noise is 0.05 uT; the rest is model error of eq. 5 (soft-iron
+    # residual at headings not yet calibrated, pitch from -bx / g, roll): the residual of the
+    # learned model with the true attitude was 0.8-1.3 uT RMS per axis on the simulator's
+    # endurance drive (the sweep of r_mag: benchmarks/MEASUREMENTS.md)
+    "r_mag": 1.5,
+    # chi-square 3 dof, 99.9 % (the paper gives the distribution, not the probability)
+    "gate_chi2": 16.27,
+    # longer than the simulator's and the paper's passing disturbances (trucks, poles: 1-4 s)
+    "gate_lockout_s": 5.0,
+    "p0_psi": 0.1,
+    "p0_phi": 0.003,
+    # central Europe (WMM, about 50 N 10 E): set per site; the calibration learns the rest
+    "declination": math.radians(4.0),
+    "inclination": math.radians(64.5),
+    "field_horizontal": 21.0,
+    "cal_sigma_hard_iron": 10.0,
+    "cal_sigma_soft_iron": 2.0,
+    "cal_r": 0.04,
+    "cal_q": 1e-6,
+    "cal_max_yaw_rate": math.radians(1.0),
+    "cal_max_ay": 0.5,
+    "cal_min_speed": 5.0,
+    "align_samples": 3.0,
+    "align_timeout_s": 10.0,
+    "q_v": 0.05,
+    "q_b": 1e-3,
+    "r_gnss": 0.01,
+    "p0_v": 1.0,
+    "p0_b": 0.04,
+    "gnss_delay": 0.4,
+    "delay_compensation": 1.0,
+    "antenna_x": 0.0,
+    "antenna_y": 0.0,
+    "antenna_z": 0.0,
+    "q_mu": 0.01,
+    "r_ay": 0.25,
+    "p0_mu": 0.25,
+    "mu_min": 0.05,
+    "mu_max": 1.5,
+    "mu_min_sensitivity": 2.0,
+    "mu_min_speed": 5.0,
+    "mu_class_updates": 50.0,
+    "settle_ticks": 100.0,
+    "converged_sigma_beta": 0.0175,
+    "gnss_outage_s": 1.0,
+    "standstill_speed": 0.1,
+    "standstill_delay_s": 1.0,
+    "gyro_offset_settling_s": 150.0,
+    "yaw_acc_cutoff_hz": 10.0,
+    # (2 deg)^2: loose enough for the magnetometer to lead, tight enough to stop the roll
+    # drifting with an unremoved roll-rate bias into a wrong (heading, roll) pair
+    "r_roll_static": math.radians(2.0) ** 2,
+    "min_speed": 2.0,
+    "pitch_from_bias": 1.0,
+    "max_pitch": math.radians(10.0),
+    "yaw_bias_time_constant": 60.0,
+    "max_yaw_rate_bias": math.radians(2.0),
+    # 3 sigma: an a_y the brush model cannot explain at any nearby mu is more likely a beta
+    # error or a longitudinal force (which the paper's model leaves out) than mu
+    "mu_gate_chi2": 9.0,
+    # 3 uT: the norm residual of the learned calibration reached 2-3 uT in handling (roll,
+    # headings not yet calibrated); a truck's disturbance is 2-15 uT
+    "field_norm_tolerance": 3.0,
+}
+
+
+#: Friction classes of Out.FRICTION_CLASS by the estimated mu (slipd): below 0.4 low (ice,
+#: snow), below 0.8 medium (wet), else high (dry).
+MU_CLASS_LOW = 0.4
+MU_CLASS_MEDIUM = 0.8
+FRICTION_LOW, FRICTION_MEDIUM, FRICTION_HIGH = 1.0, 2.0, 3.0
+
+#: Kept across key cycles by the daemon (slipd.daemon.service.StateStore): the magnetometer
+#: calibration learned on straights and its covariance, and the yaw-rate bias. Without them
+#: every drive starts uncalibrated (a few degrees of heading, hence of beta, until the car has
+#: driven straight at each heading again).
+PERSISTENT = ("CAL_C", "CAL_P", "YAW_RATE_BIAS")
+
+
+def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
+    """A fresh state vector: every filter waits for its first sample."""
+    require_vehicle("gnss_magnetometer", vehicle, (
+        Veh.MASS, Veh.LF, Veh.LR, Veh.CORNERING_STIFFNESS_F, Veh.CORNERING_STIFFNESS_R,
+        Veh.MU_NOMINAL,
+    ))  # fmt: skip
+    delay = float(params[PARAMS.GNSS_DELAY])
+    if not (0.0 <= delay <= (BUFFER_TICKS - 2) * NOMINAL_DT):
+        raise ConfigError(
+            f"gnss_delay = {delay} s: must be within 0 .. {(BUFFER_TICKS - 2) * NOMINAL_DT:.2f} s "
+            f"(the history holds {BUFFER_TICKS} ticks)"
+        )
+    state = np.zeros(LAYOUT.size, dtype=np.float64)
+    reset_imu(state, IMU)
+    state[S.LAST_VN] = np.nan
+    state[S.LAST_MAG_X] = np.nan
+    state[S.FIRST_FIX_TICK] = np.nan
+    reset_calibration(state, params)
+    state[S.MU] = vehicle[Veh.MU_NOMINAL]
+    state[S.MU_P] = params[PARAMS.P0_MU]
+    return state
+
+def reset_calibration(state: np.ndarray, params: np.ndarray) -> None:
+    """The calibration's prior: the site field seen by an ideal magnetometer (heading docstring)."""
+    horizontal = params[PARAMS.FIELD_HORIZONTAL]
+    east = horizontal * math.sin(params[PARAMS.DECLINATION])
+    north = horizontal * math.cos(params[PARAMS.DECLINATION])
+    up = -horizontal * math.tan(params[PARAMS.INCLINATION])
+    state[CAL_C : CAL_C + 9] = (east, north, 0.0, north, -east, 0.0, 0.0, 0.0, up)
+    soft = params[PARAMS.CAL_SIGMA_SOFT_IRON] ** 2
+    hard = params[PARAMS.CAL_SIGMA_HARD_IRON] ** 2
+    state[CAL_P : CAL_P + 9] = (soft, 0.0, 0.0, 0.0, soft, 0.0, 0.0, 0.0, hard)
+    state[CAL_PRIOR : CAL_PRIOR + 18] = state[CAL_C : CAL_C + 18]
+
+@nb.njit(cache=True)
+def start_heading(state, psi, phi, params):
+    state[S.HEAD_PSI] = psi
+    state[S.HEAD_PHI] = phi
+    state[HEAD_P] = params[PARAMS.P0_PSI]
+    state[HEAD_P + 1] = 0.0
+    state[HEAD_P + 2] = params[PARAMS.P0_PHI]
+    state[S.HEAD_INIT] = 1.0
+    state[S.GATE_REJECT_RUN] = 0.0
+    state[S.HISTORY_START_TICK] = state[S.TICK]  # the stored attitudes before are stale
+
+@nb.njit(cache=True)
+def calibration_sample(state, sample_tick, v_north, v_east, params):
+    """Calibrate the magnetometer against a GNSS course when the car drove straight at the
+    sampling tick (beta ~ 0, so the course is the heading; slipd, see the module docstring).
+
+    The first ``align_samples`` samples re-initialise the heading EKF (start-up alignment) and
+    ask the sideslip KF to restart. Returns True when a sample was taken.
+    """
+    es = entry(sample_tick)
+    speed = math.hypot(v_north, v_east)
+    yaw_rate = state[es + E.YAW_RATE]
+    if not (
+        speed > params[PARAMS.CAL_MIN_SPEED]
+        and abs(yaw_rate) < params[PARAMS.CAL_MAX_YAW_RATE]
+        and abs(yaw_rate) * speed < params[PARAMS.CAL_MAX_AY]
+        and math.isfinite(state[es + E.MAG_X])
+    ):
+        return False
+    course = math.atan2(v_north, v_east)
+    # the sample levelled: the model's change from (roll, pitch) of the sampling tick to level
+    # taken off (bank and grade would otherwise enter the fit as offsets)
+    inclination = params[PARAMS.INCLINATION]
+    tilted = magnetometer_model(
+        state, CAL_C, course, state[es + E.PHI], state[es + E.PITCH], inclination
+    )
+    level = magnetometer_model(state, CAL_C, course, 0.0, 0.0, inclination)
+    m_x = state[es + E.MAG_X] - tilted[0] + level[0]
+    m_y = state[es + E.MAG_Y] - tilted[1] + level[1]
+    m_z = state[es + E.MAG_Z] - tilted[2] + level[2]
+    # a disturbed field must not bend the fit, but a fit that went wrong must still be able to
+    # come back: a sample beyond the chi-square gate is down-weighted by d^2 / gate (Huber)
+    # instead of rejected
+    r_sample = params[PARAMS.CAL_R]
+    if state[S.CAL_SAMPLES] >= params[PARAMS.ALIGN_SAMPLES]:
+        d2 = calibration_residual(
+            state, CAL_C, CAL_P, course, m_x, m_y, m_z, params[PARAMS.R_MAG]
+        )
+        if d2 > params[PARAMS.GATE_CHI2]:
+            r_sample *= d2 / params[PARAMS.GATE_CHI2]
+    calibration_update(state, CAL_C, CAL_P, course, m_x, m_y, m_z, r_sample,
+                       params[PARAMS.CAL_Q])  # fmt: skip
+    state[S.CAL_SAMPLES] += 1.0
+    if state[S.CAL_SAMPLES] <= params[PARAMS.ALIGN_SAMPLES]:
+        psi = heading_from_magnetometer(state, CAL_C, state[S.LAST_MAG_X], state[S.LAST_MAG_Y])
+        if math.isfinite(psi):
+            # roll 0 on the straight: the roll learned against the uncalibrated model is as
+            # wrong as its heading was
+            start_heading(state, psi, 0.0, params)
+            # and the sideslip KF restarts: its biases would otherwise explain the jump of
+            # the rotated GNSS velocity as an acceleration offset
+            state[S.KF_INIT] = 0.0
+    return True
+
+
+@nb.njit(cache=True)
+def state_is_finite(state):
+    """True when the filters and the calibration are finite."""
+    for i in range(FINITE_END):
+        if not math.isfinite(state[i]):
+            return False
+    return True
+
+
+# ---------------------------------------------------------------------------------------------
+# stages of a tick
+# ---------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline="always")
+def _rates(state, u, params, dt, status):
+    """The three gyro rates with the offsets learnt at standstill removed (eq. 7's b_r, b_p);
+    an invalid yaw rate is the previous tick's (INPUT_TIMEOUT), an invalid roll or pitch rate
+    0 (roll missing: DEGRADED, the roll comes from the magnetometer alone). Returns (yaw_rate,
+    roll_rate, pitch_rate, status)."""
+    v_fl, v_fr, v_rl, v_rr, ok_fl, ok_fr, ok_rl, ok_rr = wheel_speeds(u)
+    all_wheels = ok_fl and ok_fr and ok_rl and ok_rr
+    fastest = max(max(v_fl, v_fr), max(v_rl, v_rr)) if all_wheels else math.inf
+    still_time = update_standstill(
+        state, OFFSETS, fastest, all_wheels, dt, params[PARAMS.STANDSTILL_SPEED]
+    )
+    standstill = still_time > params[PARAMS.STANDSTILL_DELAY_S]
+    settling = params[PARAMS.GYRO_OFFSET_SETTLING_S]
+    yaw_rate, yaw_rate_ok = channel(u, In.YAW_RATE)
+    if yaw_rate_ok:
+        yaw_rate -= update_gyro_offset(state, OFFSETS, Offsets.YAW_RATE, yaw_rate, standstill,
+                                       dt, settling)  # fmt: skip
+    else:
+        yaw_rate = state[S.PREV_YAW_RATE]
+        status |= ST_INPUT_TIMEOUT
+    roll_rate, roll_rate_ok = channel(u, In.ROLL_RATE)
+    pitch_rate, pitch_rate_ok = channel(u, In.PITCH_RATE)
+    if roll_rate_ok:
+        roll_rate -= update_gyro_offset(state, OFFSETS, Offsets.ROLL_RATE, roll_rate, standstill,
+                                        dt, settling)  # fmt: skip
+    else:
+        roll_rate = 0.0
+        status |= ST_DEGRADED  # roll from the magnetometer alone
+    if pitch_rate_ok:
+        pitch_rate -= update_gyro_offset(state, OFFSETS, Offsets.PITCH_RATE, pitch_rate,
+                                         standstill, dt, settling)  # fmt: skip
+    else:
+        pitch_rate = 0.0
+    return yaw_rate, roll_rate, pitch_rate, status
+
+
+@nb.njit(cache=True, inline="always")
+def _new_samples(state, u, status):
+    """The newest magnetometer and GNSS samples and whether each is new this tick (u carries no
+    per-channel age: a changed latched value is a new sample, so a repeated identical sample is
+    skipped, which only loses one sample). Returns (m_x, m_y, m_z, mag_ok, new_mag, v_north,
+    v_east, v_up, new_gnss, status)."""
+    m_x, ok_mx = channel(u, In.MAG_X)
+    m_y, ok_my = channel(u, In.MAG_Y)
+    m_z, ok_mz = channel(u, In.MAG_Z)
+    mag_ok = ok_mx and ok_my and ok_mz
+    new_mag = mag_ok and (
+        m_x != state[S.LAST_MAG_X] or m_y != state[S.LAST_MAG_Y] or m_z != state[S.LAST_MAG_Z]
+    )
+    if mag_ok:
+        state[S.MAG_SEEN] = 1.0
+        state[S.LAST_MAG_X] = m_x
+        state[S.LAST_MAG_Y] = m_y
+        state[S.LAST_MAG_Z] = m_z
+    else:
+        status |= ST_INPUT_TIMEOUT
+    v_north, ok_vn = channel(u, In.GNSS_VN)
+    v_east, ok_ve = channel(u, In.GNSS_VE)
+    v_up, ok_vu = channel(u, In.GNSS_VU)
+    fix, ok_fix = channel(u, In.GNSS_FIX)
+    gnss_ok = ok_vn and ok_ve and ok_vu and ok_fix and fix > 0.5
+    new_gnss = gnss_ok and (
+        v_north != state[S.LAST_VN] or v_east != state[S.LAST_VE] or v_up != state[S.LAST_VU]
+    )
+    if gnss_ok:
+        state[S.GNSS_SEEN] = 1.0
+        state[S.LAST_VN] = v_north
+        state[S.LAST_VE] = v_east
+        state[S.LAST_VU] = v_up
+    else:
+        status |= ST_INPUT_TIMEOUT
+    return m_x, m_y, m_z, mag_ok, new_mag, v_north, v_east, v_up, new_gnss, status
+
+
+@nb.njit(cache=True, inline="always")
+def _magnetometer_update(state, params, tick, m_x, m_y, m_z, dt):
+    """A new magnetometer sample into the heading EKF behind the gate (Sec. 2.2), with the
+    gate lock-out and the integral trim of the yaw-rate bias (slipd, module docstring)."""
+    psi_before = state[S.HEAD_PSI]
+    gate = params[PARAMS.GATE_CHI2]
+    if state[S.GATE_REJECT_RUN] * dt > params[PARAMS.GATE_LOCKOUT_S] and (
+        field_norm_error(state, CAL_C, m_x, m_y, m_z, state[S.HEAD_PHI], state[S.PITCH],
+                         params[PARAMS.INCLINATION])
+        < params[PARAMS.FIELD_NORM_TOLERANCE]
+    ):  # fmt: skip
+        # lock-out: the gate has rejected for long, yet the field's norm is the earth
+        # field's (Sec. 2.2's basis of disturbance detection), so the model, not the
+        # field, is wrong: psi restarts from the calibrated magnetometer
+        psi0 = heading_from_magnetometer(state, CAL_C, m_x, m_y)
+        if math.isfinite(psi0):
+            start_heading(state, psi0, state[S.HEAD_PHI], params)
+            state[S.HISTORY_START_TICK] = tick  # this tick's entry is still to come
+    d2 = heading_update(
+        state, HEAD, HEAD_P, state, CAL_C, m_x, m_y, m_z, state[S.PITCH],
+        params[PARAMS.R_MAG], params[PARAMS.INCLINATION], gate,
+    )  # fmt: skip
+    state[S.LAST_D2] = d2
+    if not d2 <= gate:
+        state[S.GATE_REJECTS] += 1.0
+        return
+    state[S.GATE_ACCEPTS] += 1.0
+    state[S.GATE_REJECT_RUN] = 0.0
+    tau_bias = params[PARAMS.YAW_BIAS_TIME_CONSTANT]
+    if tau_bias > 0.0 and gate < math.inf:
+        # slipd: the integral part of a complementary filter. A yaw-rate bias makes
+        # every update correct psi the same way; the corrections, integrated with
+        # time constant tau, are the bias (b_r of eq. 7 without a standstill)
+        correction = wrap_angle(state[S.HEAD_PSI] - psi_before)
+        limit = params[PARAMS.MAX_YAW_RATE_BIAS]
+        bias = state[S.YAW_RATE_BIAS] - correction / tau_bias
+        state[S.YAW_RATE_BIAS] = min(max(bias, -limit), limit)
+
+
+@nb.njit(cache=True, inline="always")
+def _heading_tick(state, params, vehicle, tick, m_x, m_y, m_z, mag_ok, new_mag, ay_imu, ay_ok,
+                  dt):  # fmt: skip
+    """1. the heading EKF (eq. 5-7): started from the magnetometer, then predicted with the
+    bias-free rates of tick k-1 and updated with each new sample (``_magnetometer_update``) and
+    the static roll pseudo-measurement (slipd)."""
+    if state[S.HEAD_INIT] < 0.5:
+        if mag_ok:
+            psi0 = heading_from_magnetometer(state, CAL_C, m_x, m_y)
+            if math.isfinite(psi0):
+                start_heading(state, psi0, 0.0, params)
+        return
+    heading_predict(
+        state, HEAD, HEAD_P, state[S.PREV_YAW_RATE] - state[S.YAW_RATE_BIAS],
+        state[S.PREV_ROLL_RATE], params[PARAMS.Q_PSI] * dt, params[PARAMS.Q_PHI] * dt, dt,
+    )  # fmt: skip
+    state[S.GATE_REJECT_RUN] += 1.0  # ticks since the last accepted sample
+    if new_mag:
+        _magnetometer_update(state, params, tick, m_x, m_y, m_z, dt)
+    if ay_ok and params[PARAMS.R_ROLL_STATIC] > 0.0:
+        # slipd: the static roll model (Selmanaj 2017 eq. 16, common.kinematics) as a weak
+        # pseudo-measurement; eq. 6 alone lets an uncalibrated field direction trade heading
+        # for roll
+        heading_roll_update(state, HEAD, HEAD_P, SCRATCH, ay_imu * vehicle_roll_gain(vehicle),
+                            params[PARAMS.R_ROLL_STATIC])  # fmt: skip
+
+
+@nb.njit(cache=True, inline="always")
+def _gnss_sample(state, params, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate,
+                 v_north, v_east, v_up, dt):  # fmt: skip
+    """A new GNSS sample (Sec. 2.3): calibrates the magnetometer when the car drove straight at
+    its sampling tick, then is fused into the running sideslip KF at that tick, or (re)starts
+    the KF once aligned. Returns whether the KF runs."""
+    if not math.isfinite(state[S.FIRST_FIX_TICK]):
+        state[S.FIRST_FIX_TICK] = tick
+    delay_ticks = 0.0
+    if params[PARAMS.DELAY_COMPENSATION] > 0.5:
+        delay_ticks = min(float(round(params[PARAMS.GNSS_DELAY] / dt)), BUFFER_TICKS - 2.0)
+    sample_tick = max(tick - delay_ticks, state[S.HISTORY_START_TICK])
+    calibration_sample(state, sample_tick, v_north, v_east, params)
+    if state[S.HISTORY_START_TICK] > tick:
+        # the heading was just re-aligned: this tick's entry gets the new attitude
+        save_entry(state, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate)
+        state[S.HISTORY_START_TICK] = tick
+    kf_running = state[S.KF_INIT] > 0.5  # an alignment step restarts the KF
+    aligned = state[S.CAL_SAMPLES] >= 1.0 or (
+        (tick - state[S.FIRST_FIX_TICK]) * dt > params[PARAMS.ALIGN_TIMEOUT_S]
+    )
+    sample_tick = max(sample_tick, state[S.HISTORY_START_TICK])
+    if kf_running:
+        sample_tick = max(sample_tick, state[S.KF_START_TICK])
+        fuse_delayed_gnss(
+            state, tick, sample_tick, v_north, v_east, v_up, params[PARAMS.ANTENNA_X],
+            params[PARAMS.ANTENNA_Y], params[PARAMS.ANTENNA_Z], params[PARAMS.Q_V] * dt,
+            params[PARAMS.Q_B] * dt, params[PARAMS.R_GNSS], dt,
+        )  # fmt: skip
+        state[S.GNSS_AGE] = 0.0
+        state[S.GNSS_UPDATES] += 1.0
+    elif aligned:
+        # (re)start from this sample, rotated with the attitude of its sampling tick and
+        # taken as current: it is one delay old, an error of the velocity change over the
+        # delay that the filter settles within SETTLE_TICKS, before convergence is claimed
+        es = entry(sample_tick)
+        vx0, vy0 = gnss_to_body(
+            v_north, v_east, v_up, state[es + E.PSI], state[es + E.PHI],
+            state[es + E.YAW_RATE], state[es + E.ROLL_RATE], state[es + E.PITCH_RATE],
+            params[PARAMS.ANTENNA_X], params[PARAMS.ANTENNA_Y], params[PARAMS.ANTENNA_Z],
+        )  # fmt: skip
+        start_kf(state, vx0, vy0, params[PARAMS.P0_V], params[PARAMS.P0_B], tick)
+        save_entry(state, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate)
+        kf_running = True
+    return kf_running
+
+
+@nb.njit(cache=True, inline="always")
+def _restart(state, params, vehicle):
+    """Reset on a non-finite or implausible state (openpilot paramsd's rule): the heading EKF
+    and the sideslip KF restart; a broken calibration restarts from its prior."""
+    state[S.KF_INIT] = 0.0
+    state[S.HEAD_INIT] = 0.0
+    for i in range(CAL_C, CAL_C + 18):
+        if not math.isfinite(state[i]):
+            for j in range(18):
+                state[CAL_C + j] = state[CAL_PRIOR + j]
+            state[S.CAL_SAMPLES] = 0.0
+            break
+    state[S.MU] = vehicle[Veh.MU_NOMINAL]
+    state[S.MU_P] = params[PARAMS.P0_MU]
+    state[S.MU_UPDATES] = 0.0
+
+
+@nb.njit(cache=True, inline="always")
+def _friction_class(state, params):
+    """Out.FRICTION_CLASS by the estimated mu, once it has been excited often enough."""
+    if state[S.MU_UPDATES] < params[PARAMS.MU_CLASS_UPDATES]:
+        return 0.0
+    if state[S.MU] < MU_CLASS_LOW:
+        return FRICTION_LOW
+    if state[S.MU] < MU_CLASS_MEDIUM:
+        return FRICTION_MEDIUM
+    return FRICTION_HIGH
+
+
+@nb.njit(cache=True, inline="always")
+def _write_held(out, vx, roll, params, status):
+    write_held(out, vx, held_sigma(params[PARAMS.P0_V], vx, HELD_SPEED_FLOOR), roll, status)
+
+
+# ---------------------------------------------------------------------------------------------
+# the tick
+# ---------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def step(state, u, params, vehicle, dt, out):
+    """One 100 Hz tick of the three filters; writes every element of ``out``, allocates nothing."""
+    tick = state[S.TICK]
+    state[S.TICK] = tick + 1.0
+    # --- inputs: gyro offsets at standstill (eq. 7's b_r, b_p), CoG accelerations -----------
+    yaw_rate, roll_rate, pitch_rate, status = _rates(state, u, params, dt, 0)
+    steer, steer_ok = channel(u, In.STEER)
+    steer = hold_last(state, _LAST_STEER, steer, steer_ok)
+    if not steer_ok:
+        status |= ST_INPUT_TIMEOUT
+    ax, ay, _, ax_ok, ay_ok = imu_at_cog(
+        state, IMU, u, yaw_rate, roll_rate, pitch_rate, dt, params[PARAMS.YAW_ACC_CUTOFF_HZ],
+        vehicle, True,
+    )  # fmt: skip
+    ay_imu = u[In.AY]  # at the sensor, for the static roll model
+    ax = hold_last(state, _LAST_AX, ax, ax_ok)
+    if not (ax_ok and ay_ok):
+        status |= ST_INPUT_TIMEOUT
+    vx_wheels, n_wheels = corner_speed_mean(u, steer, yaw_rate, vehicle)
+    if n_wheels < 4:
+        status |= ST_INPUT_TIMEOUT
+    m_x, m_y, m_z, mag_ok, new_mag, v_north, v_east, v_up, new_gnss, status = _new_samples(
+        state, u, status
+    )
+
+    # --- 1. heading EKF (eq. 5-7) with the Mahalanobis gate (Sec. 2.2) ---------------------
+    _heading_tick(state, params, vehicle, tick, m_x, m_y, m_z, mag_ok, new_mag, ay_imu, ay_ok,
+                  dt)  # fmt: skip
+    state[S.PREV_YAW_RATE] = yaw_rate
+    state[S.PREV_ROLL_RATE] = roll_rate
+    head_running = state[S.HEAD_INIT] > 0.5
+    roll = state[S.HEAD_PHI] if head_running else 0.0
+    # eq. 9's input a_y,m - g sin(phi) (an invalid ay: the model's r vx, no lateral slip rate)
+    if ay_ok:
+        ay_no_gravity = ay - G * math.sin(roll)
+    else:
+        ay_no_gravity = yaw_rate * state[S.KF_VX]
+    # --- availability: both sensors must have been seen -----------------------------------
+    if state[S.MAG_SEEN] < 0.5 or not head_running:
+        _write_held(out, vx_wheels, roll, params, status | ST_UNAVAILABLE)
+        return
+
+    # --- 2. sideslip KF (eq. 9-11) with the delayed GNSS (Sec. 2.3) ------------------------
+    kf_running = state[S.KF_INIT] > 0.5
+    if kf_running:
+        e_prev = entry(tick - 1.0)
+        kf4_predict(
+            state, KF, KF_P, SCRATCH, state[e_prev + E.AX], state[e_prev + E.AY_NO_GRAVITY],
+            state[e_prev + E.YAW_RATE], params[PARAMS.Q_V] * dt, params[PARAMS.Q_B] * dt, dt,
+        )  # fmt: skip
+        state[S.KF_TICKS] += 1.0
+        state[S.GNSS_AGE] += 1.0
+    save_entry(state, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate)
+    if new_gnss:
+        kf_running = _gnss_sample(state, params, tick, ax, ay_no_gravity, yaw_rate, roll_rate,
+                                  pitch_rate, v_north, v_east, v_up, dt)  # fmt: skip
+    if not kf_running:
+        if state[S.GNSS_SEEN] < 0.5:
+            status |= ST_UNAVAILABLE  # no fix ever: the method cannot run
+        _write_held(out, vx_wheels, roll, params, status)
+        return
+
+    # --- reset on a non-finite or implausible state (openpilot paramsd's rule) -------------
+    vx = state[S.KF_VX]
+    vy = state[S.KF_VY]
+    if not state_is_finite(state) or abs(vy) > max(abs(vx), 1.0):
+        _restart(state, params, vehicle)
+        _write_held(out, vx_wheels, 0.0, params, status | ST_RESET)
+        return
+
+    if params[PARAMS.PITCH_FROM_BIAS] > 0.5:
+        # slipd: eq. 9's bx holds the accelerometer offset minus g sin(pitch) (a_x,m =
+        # vx' - r vy - g sin(theta) + offset in ISO 8855); the offset (~0.1 m/s^2 = 0.6 deg) is
+        # the smaller part on a road with grades, so theta ~ -bx / g
+        max_pitch = params[PARAMS.MAX_PITCH]
+        state[S.PITCH] = min(max(-state[S.KF_BX] / G, -max_pitch), max_pitch)
+    if vx < params[PARAMS.MIN_SPEED]:
+        # beta = atan2(vy, vx) is undefined at standstill; the filters keep running
+        _write_held(out, max(vx, 0.0), roll, params, status)
+        return
+
+    # --- 3. friction EKF (eq. 13-16) -------------------------------------------------------
+    beta = math.atan2(vy, vx)
+    friction_update(
+        state, S.MU, S.MU_P, S.MU_UPDATES, beta, yaw_rate, vx, steer, ay_no_gravity, ay_ok,
+        vehicle, params[PARAMS.Q_MU] * dt, params[PARAMS.R_AY], params[PARAMS.MU_MIN_SPEED],
+        params[PARAMS.MU_MIN_SENSITIVITY], params[PARAMS.MU_GATE_CHI2], params[PARAMS.MU_MIN],
+        params[PARAMS.MU_MAX],
+    )  # fmt: skip
+
+    # --- outputs ---------------------------------------------------------------------------
+    sigma = beta_sigma(vx, vy, state[KF_P], state[KF_P + 2], state[KF_P + 10], STANDSTILL_SIGMA)
+    if (
+        state[S.KF_TICKS] < params[PARAMS.SETTLE_TICKS]
+        or state[S.CAL_SAMPLES] < params[PARAMS.ALIGN_SAMPLES]
+        or state[S.GNSS_AGE] * dt > params[PARAMS.GNSS_OUTAGE_S]
+        or not (sigma <= params[PARAMS.CONVERGED_SIGMA_BETA])
+    ):
+        status |= ST_NOT_CONVERGED
+    write_outputs(
+        out, beta, kinematic_beta_rate(vx, vy, ax - state[S.KF_BX],
+                                       ay_no_gravity - state[S.KF_BY], yaw_rate),
+        vx, vy, state[S.MU], sigma, roll, _friction_class(state, params), status,
+    )  # fmt: skip
+
+
+@nb.njit(cache=True)
+def run_ticks(state, U, params, vehicle, dt, OUT):
+    for k in range(U.shape[0]):
+        step(state, U[k], params, vehicle, dt, OUT[k])
+
+
+@nb.njit(cache=True)
+def run_ticks_diagnostic(state, U, params, vehicle, dt, OUT, DIAG):
+    """``run_ticks`` that also records, per tick, DIAG[k] = (psi, phi, d^2 of the newest
+    magnetometer sample, total rejected samples, mu, calibration samples[, pitch, accepted
+    samples] (the last two when DIAG has 8 columns))."""
+    for k in range(U.shape[0]):
+        step(state, U[k], params, vehicle, dt, OUT[k])
+        DIAG[k, 0] = state[S.HEAD_PSI]
+        DIAG[k, 1] = state[S.HEAD_PHI]
+        DIAG[k, 2] = state[S.LAST_D2]
+        DIAG[k, 3] = state[S.GATE_REJECTS]
+        DIAG[k, 4] = state[S.MU]
+        DIAG[k, 5] = state[S.CAL_SAMPLES]
+        if DIAG.shape[1] > 7:
+            DIAG[k, 6] = state[S.PITCH]
+            DIAG[k, 7] = state[S.GATE_ACCEPTS]
+
+
+__all__ = ["DEFAULTS", "LAYOUT", "PARAMS", "REQUIRED", "init", "run_ticks", "step"]
