@@ -35,6 +35,7 @@ REAL_PROFILE = Path(__file__).resolve().parents[1] / "examples/revs_250lm/ferrar
 #: (2026-12-01, before the robustness rework: bad figures here are the point, not a target).
 MEASURED: dict[tuple[str, str], tuple[float, float]] = {
     ('sim s0', 'zero'): (0.4660, 0.0000),
+    ('sim s0', 'linear_kf'): (0.4857, 0.0000),
     ('sim s0', 'kinematic_heuristic'): (0.6639, 0.0000),
     ('sim s0', 'dk_ekf'): (0.6541, 0.0000),
     ('sim s0', 'd_ekf'): (0.6214, 0.0000),
@@ -48,6 +49,7 @@ MEASURED: dict[tuple[str, str], tuple[float, float]] = {
     ('sim s0', 'hybrid_friction_nocls'): (0.4802, 0.0000),
     ('sim s0', 'ensemble'): (0.4183, 0.0000),
     ('sim s1', 'zero'): (0.4660, 0.0000),
+    ('sim s1', 'linear_kf'): (0.4872, 0.0000),
     ('sim s1', 'kinematic_heuristic'): (0.7619, 0.0000),
     ('sim s1', 'dk_ekf'): (0.6692, 0.0000),
     ('sim s1', 'd_ekf'): (0.6231, 0.0000),
@@ -61,6 +63,7 @@ MEASURED: dict[tuple[str, str], tuple[float, float]] = {
     ('sim s1', 'hybrid_friction_nocls'): (0.5125, 0.0000),
     ('sim s1', 'ensemble'): (0.5060, 0.0000),
     ('real', 'zero'): (1.6922, 0.0010),
+    ('real', 'linear_kf'): (0.7533, 0.0000),
     ('real', 'kinematic_heuristic'): (2.0702, 0.0281),
     ('real', 'dk_ekf'): (0.5857, 0.0000),
     ('real', 'd_ekf'): (0.5197, 0.0000),

@@ -215,6 +215,14 @@ def vx_from_wheels_lt(
     return (lowest if ax >= 0.0 else highest), n_valid
 
 
+@nb.njit(cache=True, inline="always")
+def _add_deviation(total, n, ok, wheel_accel, ax):
+    """One valid wheel's |dV_i/dt - A_x| into eq. 5's sum (total, count)."""
+    if not ok:
+        return total, n
+    return total + abs(wheel_accel - ax), n + 1
+
+
 @nb.njit(cache=True)
 def kx_gain(
     a_fl, a_fr, a_rl, a_rr, ok_fl, ok_fr, ok_rl, ok_rr, ax, threshold, kx_min, kx_max
@@ -222,25 +230,14 @@ def kx_gain(
     """eq. 5-6: Delta_Ax = sum_i |dV_i/dt - A_x| over the valid wheels (scaled to four when
     some are missing); K_x = K_x,min when Delta_Ax >= threshold, else K_x,max.
     Returns (K_x, Delta_Ax)."""
-    total = 0.0
-    n = 0
-    if ok_fl:
-        total += abs(a_fl - ax)
-        n += 1
-    if ok_fr:
-        total += abs(a_fr - ax)
-        n += 1
-    if ok_rl:
-        total += abs(a_rl - ax)
-        n += 1
-    if ok_rr:
-        total += abs(a_rr - ax)
-        n += 1
+    total, n = _add_deviation(0.0, 0, ok_fl, a_fl, ax)
+    total, n = _add_deviation(total, n, ok_fr, a_fr, ax)
+    total, n = _add_deviation(total, n, ok_rl, a_rl, ax)
+    total, n = _add_deviation(total, n, ok_rr, a_rr, ax)
     if n == 0:
         return 0.0, math.inf
     delta_ax = total * 4.0 / n
     return (kx_min if delta_ax >= threshold else kx_max), delta_ax
-
 
 
 # ---------------------------------------------------------------------------------------------

@@ -103,6 +103,15 @@ def scalar_update(state, x0, p0, scratch, H, innovation, r):
     return s
 
 
+@nb.njit(cache=True, inline="always")
+def optional_row(ok, h1, h2, innovation, r):
+    """A measurement row for ``joseph_update2``: as given when ``ok``, else the zero row (H = 0,
+    innovation 0, r = 1) that leaves the measurement out. Returns (h1, h2, innovation, r)."""
+    if ok:
+        return h1, h2, innovation, r
+    return 0.0, 0.0, 0.0, 1.0
+
+
 @nb.njit(cache=True)
 def joseph_update2(state, x0, p0, h11, h12, h21, h22, inn1, inn2, r1, r2):
     """One Kalman update of a 2-state filter with two measurements (x at ``x0``, packed P at

@@ -55,10 +55,17 @@ import numpy as np
 
 from slipd.channels import ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, G, Veh
 from slipd.estimators.common.inputs import ImuMemory, corner_speed_mean, read_inputs, reset_imu
-from slipd.estimators.common.kalman import beta_sigma, joseph_update2, predict_covariance
+from slipd.estimators.common.kalman import (
+    beta_sigma,
+    joseph_update2,
+    optional_row,
+    per_step,
+    predict_covariance,
+)
 from slipd.estimators.common.kinematics import kinematic_beta_rate
 from slipd.estimators.common.layout import build_layout
 from slipd.estimators.common.outputs import held_sigma, write_held, write_outputs
+from slipd.estimators.common.params import build_params
 from slipd.estimators.common.tyres import slip_angles, tanh_tyre
 from slipd.estimators.common.vehicle import require_vehicle
 
@@ -93,7 +100,8 @@ _LAST_STEER = _IMU + int(ImuMemory.LAST_STEER)
 #: filters restart themselves from a non-finite value)
 _FILTERS_END = int(S.PREV_VX) + 1
 
-#: The bookkeeping params every method of the family has (slipd's: the paper gives none).
+#: The bookkeeping params every method of the family has (slipd's: the paper gives none). They
+#: come first in every method's PARAMS (``shared_params``), so the scaffolding reads them itself.
 FILTER_PARAMS = (
     ("NOMINAL_DT", 0.01),  # s, the sampling interval the paper's Q values hold for (eq. 8)
     ("MIN_SPEED", 3.0),  # m/s, below it the filters are held
@@ -105,8 +113,24 @@ FILTER_PARAMS = (
     ("ROLL_TIME_CONSTANT", 1.0),  # s, roll complementary filter; 0 = none
     ("LEVER_ARM_3D", 1.0),  # 1 = CoG shift with roll/pitch motion, 0 = planar
 )
+#: Q_dyn and R_dyn of eq. 28 (Sec. 4), the dynamic EKF's in dk_ekf and d_ekf ("The D-EKF
+#: covariance matrices are set equal to the ones in (28)"); they follow FILTER_PARAMS there.
+DYNAMIC_PARAMS = (
+    ("Q_VY_DYN", 3e-6),  # (m/s)^2 per tick
+    ("Q_R_DYN", 1e-6),  # (rad/s)^2 per tick
+    ("R_YAW_RATE_DYN", 4e-7),  # (rad/s)^2
+    ("R_AY_DYN", 6e-2),  # (m/s^2)^2
+)
+FILTER, _ = build_params("righetti_lenzo2025", *FILTER_PARAMS)
+DYNAMIC, _ = build_params("righetti_lenzo2025_dynamic", *FILTER_PARAMS, *DYNAMIC_PARAMS)
 P0_R = ("P0_R", 1e-2)  # (rad/s)^2, initial yaw-rate variance (slipd)
 P0_VX = ("P0_VX", 1.0)  # (m/s)^2, initial vx variance (slipd)
+
+
+def shared_params(method: str, *own: tuple[str, float], dynamic: bool = False):
+    """(PARAMS, DEFAULTS) of a method of the family: FILTER_PARAMS first, then (with
+    ``dynamic``) eq. 28's DYNAMIC_PARAMS, then the method's own."""
+    return build_params(method, *FILTER_PARAMS, *(DYNAMIC_PARAMS if dynamic else ()), *own)
 #: floor of the speed in the held sigma_beta, m/s
 HELD_SPEED_FLOOR = 0.1
 
@@ -177,17 +201,8 @@ def dynamic_update(state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx, steer, vehicle, 
     _, _, ay_model, j11, j12, _, _ = single_track(state[S.DYN_VY], state[S.DYN_R], vx, steer,
                                                   vehicle)  # fmt: skip
     # H = d h / d x: row 1 picks r, row 2 is d ay_model / d(vy, r) = [J11, J12 + vx]
-    h11, h12, inn1, r1 = 0.0, 0.0, 0.0, 1.0
-    if yaw_rate_ok:
-        h12 = 1.0
-        inn1 = yaw_rate - state[S.DYN_R]
-        r1 = r_r
-    h21, h22, inn2, r2 = 0.0, 0.0, 0.0, 1.0
-    if ay_ok:
-        h21 = j11
-        h22 = j12 + vx
-        inn2 = ay - ay_model
-        r2 = r_ay
+    h11, h12, inn1, r1 = optional_row(yaw_rate_ok, 0.0, 1.0, yaw_rate - state[S.DYN_R], r_r)
+    h21, h22, inn2, r2 = optional_row(ay_ok, j11, j12 + vx, ay - ay_model, r_ay)
     return joseph_update2(state, _DYN_VY, _DYN_P, h11, h12, h21, h22, inn1, inn2, r1, r2)
 
 
@@ -206,17 +221,9 @@ def kinematic_predict(state, ax, ay, yaw_rate, q_vx, q_vy, dt):
 def kinematic_update(state, vx_meas, vx_ok, r_vx, vy_pseudo, vy_ok, r_vy):
     """A posteriori step of the kinematic KF, H = I (eq. 19) or H = [1 0] (eq. 14, vy_ok False).
     Returns the normalised innovation squared."""
-    h11, inn1, r1 = 0.0, 0.0, 1.0
-    if vx_ok:
-        h11 = 1.0
-        inn1 = vx_meas - state[S.KIN_VX]
-        r1 = r_vx
-    h22, inn2, r2 = 0.0, 0.0, 1.0
-    if vy_ok:
-        h22 = 1.0
-        inn2 = vy_pseudo - state[S.KIN_VY]
-        r2 = r_vy
-    return joseph_update2(state, _KIN_VX, _KIN_P, h11, 0.0, 0.0, h22, inn1, inn2, r1, r2)
+    h11, h12, inn1, r1 = optional_row(vx_ok, 1.0, 0.0, vx_meas - state[S.KIN_VX], r_vx)
+    h21, h22, inn2, r2 = optional_row(vy_ok, 0.0, 1.0, vy_pseudo - state[S.KIN_VY], r_vy)
+    return joseph_update2(state, _KIN_VX, _KIN_P, h11, h12, h21, h22, inn1, inn2, r1, r2)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -273,16 +280,34 @@ def state_is_finite(state):
 
 
 @nb.njit(cache=True, inline="always")
-def begin_tick(state, u, vehicle, cutoff_hz, roll_time_constant, lever_arm_3d, min_speed, dt):
+def begin_tick(state, u, params, vehicle, dt):
     """The tick's inputs (``common.inputs.read_inputs``; an invalid yaw rate falls back to
     the previous tick's, a caller with a model may prefer its estimate) and whether the
     filters run (started and at least ``min_speed``). Returns (ax, ay, yaw_rate, steer,
     ay_ok, yaw_rate_ok, running, status)."""
     ax, ay, yaw_rate, _, steer, _, _, ay_ok, yaw_rate_ok, _, status = read_inputs(
-        state, _IMU, u, vehicle, state[S.PREV_YAW_RATE], cutoff_hz, roll_time_constant,
-        lever_arm_3d, dt,
+        state, _IMU, u, vehicle, state[S.PREV_YAW_RATE], params[FILTER.YAW_ACC_CUTOFF_HZ],
+        params[FILTER.ROLL_TIME_CONSTANT], params[FILTER.LEVER_ARM_3D] > 0.5, dt,
     )  # fmt: skip
-    running = state[S.INITIALISED] > 0.5 and state[S.KIN_VX] >= min_speed
+    running = state[S.INITIALISED] > 0.5 and state[S.KIN_VX] >= params[FILTER.MIN_SPEED]
+    return ax, ay, yaw_rate, steer, ay_ok, yaw_rate_ok, running, status
+
+
+@nb.njit(cache=True, inline="always")
+def begin_dynamic_tick(state, u, params, vehicle, dt):
+    """``begin_tick``, then, while the filters run, the dynamic EKF's a priori step (eq. 8)
+    with u_dyn = [vx, delta] of tick k-1 and eq. 28's Q (``params`` laid out as DYNAMIC's);
+    the model's yaw rate stands in for an invalid gyro. Returns what ``begin_tick`` does."""
+    ax, ay, yaw_rate, steer, ay_ok, yaw_rate_ok, running, status = begin_tick(
+        state, u, params, vehicle, dt
+    )
+    if running:
+        nominal_dt = params[DYNAMIC.NOMINAL_DT]
+        dynamic_predict(state, state[S.PREV_VX], state[S.PREV_STEER], vehicle,
+                        per_step(params[DYNAMIC.Q_VY_DYN], dt, nominal_dt),
+                        per_step(params[DYNAMIC.Q_R_DYN], dt, nominal_dt), dt)
+        if not yaw_rate_ok:
+            yaw_rate = state[S.DYN_R]  # the model's yaw rate stands in for the gyro
     return ax, ay, yaw_rate, steer, ay_ok, yaw_rate_ok, running, status
 
 
@@ -297,8 +322,7 @@ def measured_speed(u, steer, yaw_rate, vehicle, status):
 
 
 @nb.njit(cache=True, inline="always")
-def hold(state, out, vx_meas, vx_ok, ax, ay, yaw_rate, steer, p0_vy, p0_r, p0_vx, min_speed,
-         status):  # fmt: skip
+def hold(state, out, vx_meas, vx_ok, ax, ay, yaw_rate, steer, params, p0_r, p0_vx, status):
     """A tick on which the filters cannot run: before the first speed sample or below the
     minimum speed, where the slip angles of eq. 7 (atan of (vy + a r) / vx) are undefined.
 
@@ -306,21 +330,21 @@ def hold(state, out, vx_meas, vx_ok, ax, ay, yaw_rate, steer, p0_vy, p0_r, p0_vx
     vx = vx_meas, and the tick's inputs are kept for the next prediction. Writes the held
     outputs."""
     if vx_ok:
-        reset_state(state, vx_meas, yaw_rate, steer, p0_vy, p0_r, p0_vx)
+        reset_state(state, vx_meas, yaw_rate, steer, params[FILTER.P0_VY], p0_r, p0_vx)
         state[S.INITIALISED] = 1.0
     state[S.PREV_AX] = ax
     state[S.PREV_AY] = ay
-    _write_held(out, vx_meas if vx_ok else state[S.KIN_VX], p0_vy, min_speed, status)
+    _write_held(out, vx_meas if vx_ok else state[S.KIN_VX], params, status)
 
 
 @nb.njit(cache=True, inline="always")
-def _write_held(out, vx, p0_vy, min_speed, status):
-    write_held(out, vx, held_sigma(p0_vy, vx, max(min_speed, HELD_SPEED_FLOOR)), 0.0, status)
+def _write_held(out, vx, params, status):
+    floor = max(params[FILTER.MIN_SPEED], HELD_SPEED_FLOOR)
+    write_held(out, vx, held_sigma(params[FILTER.P0_VY], vx, floor), 0.0, status)
 
 
 @nb.njit(cache=True, inline="always")
-def finish_tick(state, out, status, vx_meas, vx_ok, yaw_rate, steer, p0_vy, p0_r, p0_vx,
-                min_speed):  # fmt: skip
+def finish_tick(state, out, status, vx_meas, vx_ok, yaw_rate, steer, params, p0_r, p0_vx):
     """Reset on a non-finite or implausible state (writing the held outputs); returns (status
     with RESET, reset?).
 
@@ -332,22 +356,24 @@ def finish_tick(state, out, status, vx_meas, vx_ok, yaw_rate, steer, p0_vy, p0_r
     if state_is_finite(state) and abs(state[S.KIN_VY]) <= state[S.KIN_VX]:
         state[S.TICKS] += 1.0
         return status, False
-    reset_state(state, vx_meas if vx_ok else 0.0, yaw_rate, steer, p0_vy, p0_r, p0_vx)
+    reset_state(state, vx_meas if vx_ok else 0.0, yaw_rate, steer, params[FILTER.P0_VY], p0_r,
+                p0_vx)  # fmt: skip
     if not vx_ok:
         state[S.INITIALISED] = 0.0
     status |= ST_RESET
-    _write_held(out, state[S.KIN_VX], p0_vy, min_speed, status)
+    _write_held(out, state[S.KIN_VX], params, status)
     return status, True
 
 
 @nb.njit(cache=True, inline="always")
-def write_estimate(state, out, vx, vy, p_xx, p_xy, p_yy, ax, ay, yaw_rate, settle_ticks,
-                   converged_sigma, status):  # fmt: skip
+def write_estimate(state, out, vx, vy, p_xx, p_xy, p_yy, ax, ay, yaw_rate, params, status):
     """Outputs of a running tick: beta = atan2(vy, vx) (eq. 4) with the 1-sigma of the [vx, vy]
     covariance, the kinematic beta rate, the gravity compensation's roll; NOT_CONVERGED until
-    ``settle_ticks`` after a (re)start and while sigma exceeds ``converged_sigma``."""
+    ``settle_ticks`` after a (re)start and while sigma exceeds ``converged_sigma_beta``."""
     sigma = beta_sigma(vx, vy, p_xx, p_xy, p_yy, math.nan)
-    if state[S.TICKS] < settle_ticks or not (sigma <= converged_sigma):
+    if state[S.TICKS] < params[FILTER.SETTLE_TICKS] or not (
+        sigma <= params[FILTER.CONVERGED_SIGMA_BETA]
+    ):
         status |= ST_NOT_CONVERGED
     write_outputs(out, math.atan2(vy, vx), kinematic_beta_rate(vx, vy, ax, ay, yaw_rate), vx, vy,
                   math.nan, sigma, state[_ROLL], 0.0, status)  # fmt: skip

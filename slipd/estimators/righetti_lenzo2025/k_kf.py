@@ -22,38 +22,27 @@ import numba as nb
 import numpy as np
 
 from slipd.estimators.common.kalman import per_step
-from slipd.estimators.common.params import build_params
-from slipd.estimators.righetti_lenzo2025.filters import (
-    FILTER_PARAMS,
-    LAYOUT,
-    P0_VX,
-    S,
-    begin_tick,
-    finish_tick,
-    hold,
-    kinematic_predict,
-    kinematic_update,
-    measured_speed,
-    new_state,
-    remember_inputs,
-    write_estimate,
-)
+from slipd.estimators.righetti_lenzo2025 import filters as rl
+from slipd.estimators.righetti_lenzo2025.filters import S
 
-PARAMS, DEFAULTS = build_params(
+#: The state layout all three methods share (filters.LAYOUT).
+LAYOUT = rl.LAYOUT
+
+PARAMS, DEFAULTS = rl.shared_params(
     "k_kf",
     ("Q_VX", 5e-3),  # (m/s)^2 per tick, eq. 30
     ("Q_VY", 3e-3),  # (m/s)^2 per tick, eq. 30
     ("R_VX", 2e-3),  # (m/s)^2, eq. 30
     ("ZERO_VY_YAW_RATE", 0.01),  # rad/s, |r| below which vy is set to zero (Sec. 4)
     ("P_VY_MAX", 100.0),  # (m/s)^2, cap of the vy variance while vy is unobservable (slipd)
-    *FILTER_PARAMS, P0_VX,
+    rl.P0_VX,
 )  # fmt: skip
 _KIN_P = int(S.KIN_P)
 
 
 def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     """A fresh state vector (``filters.LAYOUT``); the filter starts on the first speed sample."""
-    return new_state(vehicle, "k_kf")
+    return rl.new_state(vehicle, "k_kf")
 
 
 @nb.njit(cache=True)
@@ -62,28 +51,24 @@ def step(state, u, params, vehicle, dt, out):
 
     The dynamic slots of the state are unused.
     """
-    p0_vy = params[PARAMS.P0_VY]
-    min_speed = params[PARAMS.MIN_SPEED]
     p0_vx = params[PARAMS.P0_VX]
     nominal_dt = params[PARAMS.NOMINAL_DT]
-    ax, ay, yaw_rate, steer, ay_ok, _, running, status = begin_tick(
-        state, u, vehicle, params[PARAMS.YAW_ACC_CUTOFF_HZ], params[PARAMS.ROLL_TIME_CONSTANT],
-        params[PARAMS.LEVER_ARM_3D] > 0.5, min_speed, dt,
-    )  # fmt: skip
-    vx_meas, vx_ok, status = measured_speed(u, steer, yaw_rate, vehicle, status)
+    ax, ay, yaw_rate, steer, ay_ok, _, running, status = rl.begin_tick(
+        state, u, params, vehicle, dt
+    )
+    vx_meas, vx_ok, status = rl.measured_speed(u, steer, yaw_rate, vehicle, status)
     if not running:
-        hold(state, out, vx_meas, vx_ok, ax, ay, yaw_rate, steer, p0_vy, 0.0, p0_vx, min_speed,
-             status)  # fmt: skip
+        rl.hold(state, out, vx_meas, vx_ok, ax, ay, yaw_rate, steer, params, 0.0, p0_vx, status)
         return
     # a priori (eq. 13) with [ax, ay, r] of tick k-1, Q_K of eq. 30. Without ay (invalid) the
     # kinematic model has no lateral input: the previous one is held (flagged INPUT_TIMEOUT).
-    kinematic_predict(
+    rl.kinematic_predict(
         state, state[S.PREV_AX], state[S.PREV_AY], state[S.PREV_YAW_RATE],
         per_step(params[PARAMS.Q_VX], dt, nominal_dt),
         per_step(params[PARAMS.Q_VY], dt, nominal_dt), dt,
     )  # fmt: skip
     # a posteriori with y = vx_meas, H = [1 0] (eq. 14), R_K of eq. 30
-    kinematic_update(state, vx_meas, vx_ok, params[PARAMS.R_VX], 0.0, False, 1.0)
+    rl.kinematic_update(state, vx_meas, vx_ok, params[PARAMS.R_VX], 0.0, False, 1.0)
     if abs(yaw_rate) < params[PARAMS.ZERO_VY_YAW_RATE]:
         state[S.KIN_VY] = 0.0  # Sec. 4: vy := 0 on straights against the drift
     p_yy = state[_KIN_P + 2]
@@ -94,19 +79,16 @@ def step(state, u, params, vehicle, dt, out):
         shrink = math.sqrt(p_vy_max / p_yy)
         state[_KIN_P + 1] *= shrink
         state[_KIN_P + 2] = p_vy_max
-    remember_inputs(state, ax, ay if ay_ok else state[S.PREV_AY], yaw_rate, steer)
-    status, was_reset = finish_tick(state, out, status, vx_meas, vx_ok, yaw_rate, steer, p0_vy,
-                                    0.0, p0_vx, min_speed)  # fmt: skip
+    rl.remember_inputs(state, ax, ay if ay_ok else state[S.PREV_AY], yaw_rate, steer)
+    status, was_reset = rl.finish_tick(state, out, status, vx_meas, vx_ok, yaw_rate, steer,
+                                       params, 0.0, p0_vx)  # fmt: skip
     if not was_reset:
-        write_estimate(state, out, state[S.KIN_VX], state[S.KIN_VY], state[_KIN_P],
-                       state[_KIN_P + 1], state[_KIN_P + 2], ax, state[S.PREV_AY], yaw_rate,
-                       params[PARAMS.SETTLE_TICKS], params[PARAMS.CONVERGED_SIGMA_BETA], status)
+        rl.write_estimate(state, out, state[S.KIN_VX], state[S.KIN_VY], state[_KIN_P],
+                          state[_KIN_P + 1], state[_KIN_P + 2], ax, state[S.PREV_AY], yaw_rate,
+                          params, status)
 
 
 @nb.njit(cache=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])
-
-
-__all__ = ["DEFAULTS", "LAYOUT", "PARAMS", "init", "run_ticks", "step"]

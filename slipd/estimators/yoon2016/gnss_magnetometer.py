@@ -169,6 +169,10 @@ HELD_SPEED_FLOOR = 1.0
 STANDSTILL_SIGMA = math.pi
 _LAST_AX = IMU + int(ImuMemory.LAST_AX)
 _LAST_STEER = IMU + int(ImuMemory.LAST_STEER)
+_LAST_MAG = int(S.LAST_MAG_X)
+_LAST_GNSS = int(S.LAST_VN)
+_MAG_SEEN = int(S.MAG_SEEN)
+_GNSS_SEEN = int(S.GNSS_SEEN)
 
 
 @enum.unique
@@ -468,39 +472,39 @@ def _rates(state, u, params, dt, status):
 
 
 @nb.njit(cache=True, inline="always")
+def _latched_sample(state, u, channel_a, last, seen, extra_ok):
+    """Three consecutive channels from ``channel_a`` as one sample: their values, whether all
+    are valid (and ``extra_ok``), and whether the sample is new (u carries no per-channel age:
+    a changed latched value is a new sample, so a repeated identical one is skipped, which only
+    loses one sample). A valid sample is remembered in ``state[last:last + 3]`` and sets
+    ``state[seen]``. Returns (a, b, c, ok, new)."""
+    a, ok_a = channel(u, channel_a)
+    b, ok_b = channel(u, channel_a + 1)
+    c, ok_c = channel(u, channel_a + 2)
+    ok = ok_a and ok_b and ok_c and extra_ok
+    new = ok and (a != state[last] or b != state[last + 1] or c != state[last + 2])
+    if ok:
+        state[seen] = 1.0
+        state[last] = a
+        state[last + 1] = b
+        state[last + 2] = c
+    return a, b, c, ok, new
+
+
+@nb.njit(cache=True, inline="always")
 def _new_samples(state, u, status):
-    """The newest magnetometer and GNSS samples and whether each is new this tick (u carries no
-    per-channel age: a changed latched value is a new sample, so a repeated identical sample is
-    skipped, which only loses one sample). Returns (m_x, m_y, m_z, mag_ok, new_mag, v_north,
-    v_east, v_up, new_gnss, status)."""
-    m_x, ok_mx = channel(u, In.MAG_X)
-    m_y, ok_my = channel(u, In.MAG_Y)
-    m_z, ok_mz = channel(u, In.MAG_Z)
-    mag_ok = ok_mx and ok_my and ok_mz
-    new_mag = mag_ok and (
-        m_x != state[S.LAST_MAG_X] or m_y != state[S.LAST_MAG_Y] or m_z != state[S.LAST_MAG_Z]
-    )
-    if mag_ok:
-        state[S.MAG_SEEN] = 1.0
-        state[S.LAST_MAG_X] = m_x
-        state[S.LAST_MAG_Y] = m_y
-        state[S.LAST_MAG_Z] = m_z
-    else:
+    """The newest magnetometer and GNSS samples and whether each is new this tick; a missing
+    one is an INPUT_TIMEOUT. Returns (m_x, m_y, m_z, mag_ok, new_mag, v_north, v_east, v_up,
+    new_gnss, status)."""
+    m_x, m_y, m_z, mag_ok, new_mag = _latched_sample(state, u, In.MAG_X, _LAST_MAG, _MAG_SEEN,
+                                                     True)  # fmt: skip
+    if not mag_ok:
         status |= ST_INPUT_TIMEOUT
-    v_north, ok_vn = channel(u, In.GNSS_VN)
-    v_east, ok_ve = channel(u, In.GNSS_VE)
-    v_up, ok_vu = channel(u, In.GNSS_VU)
     fix, ok_fix = channel(u, In.GNSS_FIX)
-    gnss_ok = ok_vn and ok_ve and ok_vu and ok_fix and fix > 0.5
-    new_gnss = gnss_ok and (
-        v_north != state[S.LAST_VN] or v_east != state[S.LAST_VE] or v_up != state[S.LAST_VU]
+    v_north, v_east, v_up, gnss_ok, new_gnss = _latched_sample(
+        state, u, In.GNSS_VN, _LAST_GNSS, _GNSS_SEEN, ok_fix and fix > 0.5
     )
-    if gnss_ok:
-        state[S.GNSS_SEEN] = 1.0
-        state[S.LAST_VN] = v_north
-        state[S.LAST_VE] = v_east
-        state[S.LAST_VU] = v_up
-    else:
+    if not gnss_ok:
         status |= ST_INPUT_TIMEOUT
     return m_x, m_y, m_z, mag_ok, new_mag, v_north, v_east, v_up, new_gnss, status
 
