@@ -277,21 +277,35 @@ def random_spd(rng, n):
     return a @ a.T + 0.1 * np.eye(n)
 
 
+def packed(P: np.ndarray) -> np.ndarray:
+    """The upper triangle row by row (common.kalman's storage of a covariance)."""
+    return P[np.triu_indices(len(P))]
+
+
+def unpacked(values: np.ndarray) -> np.ndarray:
+    P = np.zeros((4, 4))
+    P[np.triu_indices(4)] = values
+    return P + np.triu(P, 1).T
+
+
+KF_P = slice(4, 4 + yoon_state.KF_P_LEN)
+
+
 def test_sideslip_kf_predict_and_update_match_numpy():
     rng = np.random.default_rng(3)
     x = np.array([20.0, 0.05, 0.4, -0.1])
     P = random_spd(rng, 4)
     state = np.zeros(60)
     state[0:4] = x
-    state[4:20] = P.ravel()
+    state[KF_P] = packed(P)
     sideslip.kf4_predict(state, 0, 4, 30, 0.7, 3.1, 0.25, 1e-3, 1e-5, DT)
     x_ref, P_ref = np_predict(x, P, 0.7, 3.1, 0.25, 1e-3, 1e-5)
     np.testing.assert_allclose(state[0:4], x_ref, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(state[4:20].reshape(4, 4), P_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(unpacked(state[KF_P]), P_ref, rtol=0, atol=1e-12)
     sideslip.kf4_update_velocity(state, 0, 4, 30, 20.3, 0.2, 0.01, 0.01)
     x_ref, P_ref = np_update(x_ref, P_ref, 20.3, 0.2, 0.01)
     np.testing.assert_allclose(state[0:4], x_ref, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(state[4:20].reshape(4, 4), P_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(unpacked(state[KF_P]), P_ref, rtol=0, atol=1e-12)
 
 
 def test_delayed_fusion_is_the_update_at_the_sampling_tick_rerun_to_now(vehicle):
@@ -304,7 +318,7 @@ def test_delayed_fusion_is_the_update_at_the_sampling_tick_rerun_to_now(vehicle)
     q_v, q_b = params[PARAMS.Q_V] * DT, params[PARAMS.Q_B] * DT
     sideslip.start_kf(state, 15.0, 0.2, params[PARAMS.P0_V], params[PARAMS.P0_B], 0.0)
     x = state[0:4].copy()
-    P = state[4:20].reshape(4, 4).copy()
+    P = unpacked(state[KF_P])
     inputs = rng.normal(0.0, [0.5, 2.0, 0.2], (60, 3))
     history = []
     for tick in range(60):
@@ -328,7 +342,7 @@ def test_delayed_fusion_is_the_update_at_the_sampling_tick_rerun_to_now(vehicle)
     for tick in range(sample_tick + 1, now + 1):
         x, P = np_predict(x, P, *inputs[tick - 1], q_v, q_b)
     np.testing.assert_allclose(state[0:4], x, rtol=0, atol=1e-10)
-    np.testing.assert_allclose(state[4:20].reshape(4, 4), P, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(unpacked(state[KF_P]), P, rtol=0, atol=1e-12)
 
 
 def test_calibration_rls_is_the_regularised_least_squares_fit():

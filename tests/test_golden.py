@@ -101,7 +101,7 @@ def _compare(directory: Path, outputs: dict) -> list[str]:
             first = int(np.flatnonzero(~same.all(axis=1))[0])
             lines.append(f"{scenario} {name}: {int((~same).any(axis=1).sum())} ticks differ "
                          f"from tick {first} in {columns}; max |diff| "
-                         f"{np.nanmax(diff, axis=0).round(12).tolist()}")
+                         f"{[f'{v:.2g}' for v in np.nanmax(diff, axis=0)]}")
     return lines
 
 

@@ -27,10 +27,10 @@ import math
 
 import numba as nb
 
-from slipd.channels import G, Veh
+from slipd.channels import Veh
 from slipd.estimators.chen2018.state import DBE_P, DBE_VX, SCRATCH_P, S
 from slipd.estimators.common.kalman import per_step, predict_covariance, scalar_update
-from slipd.estimators.common.tyres import magic_formula
+from slipd.estimators.common.tyres import magic_formula, static_wheel_loads, wheel_loads
 
 #: m/s: the wheel-centre speed below which a slip angle's denominator is clamped (the method
 #: holds its filters far above it; this only guards the division)
@@ -41,29 +41,14 @@ MIN_LOAD_SHARE = 0.05
 
 @nb.njit(cache=True)
 def vertical_loads(ax, ay, vehicle):
-    """Eq. 6 (ISO 8855 signs, see the module docstring): (Fz_FL, Fz_FR, Fz_RL, Fz_RR) [N].
-
-    Longitudinal transfer m ax h / (2 l) from front to rear; lateral transfer of each axle
-    m ay h l_other / (l track), off the left wheels when ay > 0. Loads are floored at 5 % of the
-    static wheel load (a lifted wheel keeps a well-defined, small force).
-    """
-    mass = vehicle[Veh.MASS]
-    lf = vehicle[Veh.LF]
-    lr = vehicle[Veh.LR]
-    wheelbase = lf + lr
-    h = vehicle[Veh.H_COG]
-    static_f = 0.5 * mass * G * lr / wheelbase
-    static_r = 0.5 * mass * G * lf / wheelbase
-    long_transfer = 0.5 * mass * ax * h / wheelbase
-    lat_f = mass * ay * h * lr / (wheelbase * vehicle[Veh.TRACK_F])
-    lat_r = mass * ay * h * lf / (wheelbase * vehicle[Veh.TRACK_R])
+    """Eq. 6 (ISO 8855 signs, see ``pseudo_fusion``; ``common.tyres.wheel_loads``): (Fz_FL,
+    Fz_FR, Fz_RL, Fz_RR) [N] with longitudinal transfer m ax h / (2 l) from front to rear and
+    lateral transfer of each axle m ay h l_other / (l track), off the left wheels when ay > 0.
+    Loads are floored at MIN_LOAD_SHARE of the smaller static wheel load (a lifted wheel keeps
+    a well-defined, small force)."""
+    static_f, static_r = static_wheel_loads(vehicle)
     floor = MIN_LOAD_SHARE * min(static_f, static_r)
-    return (
-        max(static_f - long_transfer - lat_f, floor),
-        max(static_f - long_transfer + lat_f, floor),
-        max(static_r + long_transfer - lat_r, floor),
-        max(static_r + long_transfer + lat_r, floor),
-    )
+    return wheel_loads(ax, ay, vehicle, floor, floor)
 
 
 @nb.njit(cache=True)

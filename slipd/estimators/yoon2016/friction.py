@@ -17,24 +17,25 @@ import math
 
 import numba as nb
 
-from slipd.channels import G, Veh
-from slipd.estimators.common.tyres import brush_tyre
+from slipd.channels import Veh
+from slipd.estimators.common.kalman import scalar_update
+from slipd.estimators.common.tyres import brush_tyre, static_wheel_loads
 
 
 @nb.njit(cache=True)
-def lateral_acceleration_model(
-    mu, beta, yaw_rate, vx, steer, mass, lf, lr, stiffness_f, stiffness_r
-):
+def lateral_acceleration_model(mu, beta, yaw_rate, vx, steer, vehicle):
     """h(mu) of eq. 16: a_y = (2 f_yf cos(delta) + 2 f_yr) / m (eq. 13) and dh/dmu.
 
     Slip angles of eq. 14 (ISO 8855, the paper's): alpha_f = delta - (beta + a r / vx),
     alpha_r = -(beta - b r / vx). Static tyre loads Fz = m g b / (2 l) front, m g a / (2 l) rear;
-    ``stiffness_f``, ``stiffness_r`` are axle cornering stiffnesses (two tyres each).
+    the brush model's stiffness is half the profile's axle cornering stiffness (per tyre).
     """
-    wheelbase = lf + lr
-    weight = mass * G
-    fz_front = 0.5 * weight * lr / wheelbase
-    fz_rear = 0.5 * weight * lf / wheelbase
+    mass = vehicle[Veh.MASS]
+    lf = vehicle[Veh.LF]
+    lr = vehicle[Veh.LR]
+    stiffness_f = vehicle[Veh.CORNERING_STIFFNESS_F]
+    stiffness_r = vehicle[Veh.CORNERING_STIFFNESS_R]
+    fz_front, fz_rear = static_wheel_loads(vehicle)
     alpha_f = steer - (beta + lf * yaw_rate / vx)
     alpha_r = -(beta - lr * yaw_rate / vx)
     force_f, dforce_f = brush_tyre(alpha_f, mu, fz_front, 0.5 * stiffness_f)
@@ -46,30 +47,25 @@ def lateral_acceleration_model(
 
 
 @nb.njit(cache=True)
-def friction_update(state, i_mu, i_p, i_updates, beta, yaw_rate, vx, steer, ay, ay_ok, vehicle,
-                    q_mu, r_ay, min_speed, min_sensitivity, gate, mu_min, mu_max):  # fmt: skip
+def friction_update(state, i_mu, i_p, i_updates, scratch, beta, yaw_rate, vx, steer, ay, ay_ok,
+                    vehicle, q_mu, r_ay, min_speed, min_sensitivity, gate, mu_min,
+                    mu_max):  # fmt: skip
     """One tick of the friction EKF on ``state[i_mu]`` (mu), ``state[i_p]`` (its variance) and
     ``state[i_updates]`` (excited updates so far): predict (f = mu, ``q_mu`` per step), then,
     with a valid ``ay`` (gravity-free, CoG) above ``min_speed`` and enough excitation, the
-    scalar update by eq. 16, clamped to [mu_min, mu_max]."""
+    scalar update by eq. 16 (``common.kalman.scalar_update``; one scratch slot), clamped to
+    [mu_min, mu_max]."""
     mu = state[i_mu]
     state[i_p] += q_mu  # f(mu) = mu
     if not (ay_ok and vx > min_speed):
         return
-    ay_model, h_mu = lateral_acceleration_model(
-        mu, beta, yaw_rate, vx, steer, vehicle[Veh.MASS], vehicle[Veh.LF], vehicle[Veh.LR],
-        vehicle[Veh.CORNERING_STIFFNESS_F], vehicle[Veh.CORNERING_STIFFNESS_R],
-    )  # fmt: skip
+    ay_model, h_mu = lateral_acceleration_model(mu, beta, yaw_rate, vx, steer, vehicle)
     if abs(h_mu) < min_sensitivity:
         return
-    p_mu = state[i_p]
     innovation = ay - ay_model
-    d2 = innovation * innovation / (h_mu * p_mu * h_mu + r_ay)
+    d2 = innovation * innovation / (h_mu * state[i_p] * h_mu + r_ay)
     if d2 > gate:
         r_ay *= d2 / gate  # Huber: bounded pull, no lock-out
-    innovation_variance = h_mu * p_mu * h_mu + r_ay
-    gain = p_mu * h_mu / innovation_variance
-    mu += gain * innovation
-    state[i_mu] = min(max(mu, mu_min), mu_max)
-    state[i_p] = (1.0 - gain * h_mu) * p_mu
+    scalar_update(state, i_mu, i_p, scratch, (h_mu,), innovation, r_ay)
+    state[i_mu] = min(max(state[i_mu], mu_min), mu_max)
     state[i_updates] += 1.0

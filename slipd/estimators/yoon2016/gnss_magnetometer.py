@@ -113,7 +113,7 @@ from slipd.estimators.common.inputs import (
     update_standstill,
     wheel_speeds,
 )
-from slipd.estimators.common.kalman import beta_sigma
+from slipd.estimators.common.kalman import beta_sigma, tri
 from slipd.estimators.common.kinematics import kinematic_beta_rate, vehicle_roll_gain
 from slipd.estimators.common.outputs import held_sigma, write_held, write_outputs
 from slipd.estimators.common.vehicle import require_vehicle
@@ -746,14 +746,15 @@ def step(state, u, params, vehicle, dt, out):
     # --- 3. friction EKF (eq. 13-16) -------------------------------------------------------
     beta = math.atan2(vy, vx)
     friction_update(
-        state, S.MU, S.MU_P, S.MU_UPDATES, beta, yaw_rate, vx, steer, ay_no_gravity, ay_ok,
+        state, S.MU, S.MU_P, S.MU_UPDATES, SCRATCH, beta, yaw_rate, vx, steer, ay_no_gravity, ay_ok,
         vehicle, params[PARAMS.Q_MU] * dt, params[PARAMS.R_AY], params[PARAMS.MU_MIN_SPEED],
         params[PARAMS.MU_MIN_SENSITIVITY], params[PARAMS.MU_GATE_CHI2], params[PARAMS.MU_MIN],
         params[PARAMS.MU_MAX],
     )  # fmt: skip
 
     # --- outputs ---------------------------------------------------------------------------
-    sigma = beta_sigma(vx, vy, state[KF_P], state[KF_P + 2], state[KF_P + 10], STANDSTILL_SIGMA)
+    sigma = beta_sigma(vx, vy, state[KF_P], state[KF_P + tri(0, 2, 4)], state[KF_P + tri(2, 2, 4)],
+                       STANDSTILL_SIGMA)
     if (
         state[S.KF_TICKS] < params[PARAMS.SETTLE_TICKS]
         or state[S.CAL_SAMPLES] < params[PARAMS.ALIGN_SAMPLES]

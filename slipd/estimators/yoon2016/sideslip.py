@@ -21,6 +21,7 @@ import math
 
 import numba as nb
 
+from slipd.estimators.common.kalman import predict_covariance, scalar_update, tri
 from slipd.estimators.yoon2016.state import (
     BUFFER_TICKS,
     ENTRY_LEN,
@@ -28,6 +29,7 @@ from slipd.estimators.yoon2016.state import (
     KF,
     KF_LEN,
     KF_P,
+    KF_P_LEN,
     SCRATCH,
     E,
     S,
@@ -40,7 +42,7 @@ def kf4_predict(state, ix, ip, scratch, ax, ay_no_gravity, yaw_rate, q_v, q_b, d
 
     A = [[0, -1, r, 0], [0, 0, 0, 0], [-r, 0, 0, -1], [0, 0, 0, 0]] (r = yaw rate without bias),
     u = [a_x,m, a_y,m - g sin(phi)]. Q = diag(q_v, q_b, q_v, q_b) per tick. ``state[ix:ix+4]``
-    is x, ``state[ip:ip+16]`` P row-major, ``state[scratch:scratch+16]`` working memory.
+    is x, ``state[ip:]`` the packed P, ``state[scratch:scratch+16]`` working memory.
     """
     vx = state[ix]
     bx = state[ix + 1]
@@ -49,67 +51,19 @@ def kf4_predict(state, ix, ip, scratch, ax, ay_no_gravity, yaw_rate, q_v, q_b, d
     state[ix] = vx + (-bx + yaw_rate * vy + ax) * dt
     state[ix + 2] = vy + (-yaw_rate * vx - by + ay_no_gravity) * dt
     rd = yaw_rate * dt
-    # F P: row 0 = P0 - dt P1 + rd P2, row 1 = P1, row 2 = -rd P0 + P2 - dt P3, row 3 = P3
-    for j in range(4):
-        p0 = state[ip + j]
-        p1 = state[ip + 4 + j]
-        p2 = state[ip + 8 + j]
-        p3 = state[ip + 12 + j]
-        state[scratch + j] = p0 - dt * p1 + rd * p2
-        state[scratch + 4 + j] = p1
-        state[scratch + 8 + j] = -rd * p0 + p2 - dt * p3
-        state[scratch + 12 + j] = p3
-    # (F P) F': column j of F' is row j of F
-    for i in range(4):
-        a0 = state[scratch + 4 * i]
-        a1 = state[scratch + 4 * i + 1]
-        a2 = state[scratch + 4 * i + 2]
-        a3 = state[scratch + 4 * i + 3]
-        state[ip + 4 * i] = a0 - dt * a1 + rd * a2
-        state[ip + 4 * i + 1] = a1
-        state[ip + 4 * i + 2] = -rd * a0 + a2 - dt * a3
-        state[ip + 4 * i + 3] = a3
-    state[ip] += q_v
-    state[ip + 5] += q_b
-    state[ip + 10] += q_v
-    state[ip + 15] += q_b
+    F = (1.0, -dt, rd, 0.0,
+         0.0, 1.0, 0.0, 0.0,
+         -rd, 0.0, 1.0, -dt,
+         0.0, 0.0, 0.0, 1.0)  # fmt: skip
+    predict_covariance(state, ip, scratch, F, (q_v, q_b, q_v, q_b))
 
 
 @nb.njit(cache=True)
 def kf4_update_velocity(state, ix, ip, scratch, vx_meas, vy_meas, r_vx, r_vy):
-    """Measurement update with y = [vx_GPS, vy_GPS] and H = [[1, 0, 0, 0], [0, 0, 1, 0]] (eq. 11).
-
-    S = H P H' + R is 2 x 2; K = P H' S^-1 (4 x 2); P = P - K (H P) (= (I - K H) P, eq. 2).
-    ``state[scratch:scratch + 8]`` holds the columns 0 and 2 of the prior P while P is rewritten.
-    """
-    # S = [[P00 + r_vx, P02], [P20, P22 + r_vy]]
-    s11 = state[ip] + r_vx
-    s12 = state[ip + 2]
-    s22 = state[ip + 10] + r_vy
-    det = s11 * s22 - s12 * s12
-    if not (det > 0.0):
-        return
-    i11 = s22 / det
-    i12 = -s12 / det
-    i22 = s11 / det
-    # P H' = columns 0 and 2 of P (= rows 0 and 2 of H P by symmetry), kept before P changes
-    for i in range(4):
-        state[scratch + 2 * i] = state[ip + 4 * i]
-        state[scratch + 2 * i + 1] = state[ip + 4 * i + 2]
-    nu1 = vx_meas - state[ix]
-    nu2 = vy_meas - state[ix + 2]
-    w1 = i11 * nu1 + i12 * nu2
-    w2 = i12 * nu1 + i22 * nu2
-    for i in range(4):
-        g0 = state[scratch + 2 * i]
-        g2 = state[scratch + 2 * i + 1]
-        # x = x + K y~ = x + P H' (S^-1 y~)
-        state[ix + i] += g0 * w1 + g2 * w2
-        # K row i = (P H')_i S^-1
-        k0 = g0 * i11 + g2 * i12
-        k2 = g0 * i12 + g2 * i22
-        for j in range(4):
-            state[ip + 4 * i + j] -= k0 * state[scratch + 2 * j] + k2 * state[scratch + 2 * j + 1]
+    """Measurement update with y = [vx_GPS, vy_GPS] and H = [[1, 0, 0, 0], [0, 0, 1, 0]] (eq. 11),
+    the two (independent) components one after the other: the batch update of eq. 2."""
+    scalar_update(state, ix, ip, scratch, (1.0, 0.0, 0.0, 0.0), vx_meas - state[ix], r_vx)
+    scalar_update(state, ix, ip, scratch, (0.0, 0.0, 1.0, 0.0), vy_meas - state[ix + 2], r_vy)
 
 
 @nb.njit(cache=True)
@@ -141,12 +95,12 @@ def start_kf(state, vx, vy, p0_v, p0_b, tick):
     state[S.KF_BX] = 0.0
     state[S.KF_VY] = vy
     state[S.KF_BY] = 0.0
-    for i in range(16):
+    for i in range(KF_P_LEN):
         state[KF_P + i] = 0.0
-    state[KF_P] = p0_v
-    state[KF_P + 5] = p0_b
-    state[KF_P + 10] = p0_v
-    state[KF_P + 15] = p0_b
+    state[KF_P + tri(0, 0, 4)] = p0_v
+    state[KF_P + tri(1, 1, 4)] = p0_b
+    state[KF_P + tri(2, 2, 4)] = p0_v
+    state[KF_P + tri(3, 3, 4)] = p0_b
     state[S.KF_INIT] = 1.0
     state[S.KF_TICKS] = 0.0
     state[S.KF_START_TICK] = tick

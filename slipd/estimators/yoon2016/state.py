@@ -7,8 +7,8 @@ from slipd.estimators.common.layout import build_layout
 
 #: Ticks of filter history kept for the delayed GNSS samples (0.63 s at 100 Hz > 0.4 s delay).
 BUFFER_TICKS = 64
-#: Slots of the sideslip KF's covariance (4 x 4, row-major).
-KF_P_LEN = 16
+#: Slots of the sideslip KF's covariance (4 x 4 symmetric, packed: common.kalman.tri).
+KF_P_LEN = 10
 
 #: One history entry of the sideslip KF (``ENTRY.size`` slots per tick).
 ENTRY = build_layout(
@@ -34,7 +34,7 @@ LAYOUT = build_layout(
     "KF_BX",  # m/s^2
     "KF_VY",  # m/s
     "KF_BY",  # m/s^2
-    ("KF_P", KF_P_LEN),  # P row-major
+    ("KF_P", KF_P_LEN),  # P packed
     "HEAD_PSI",  # rad, heading from east, CCW (heading EKF, eq. 7)
     "HEAD_PHI",  # rad, roll (ISO 8855)
     ("HEAD_P", 3),  # packed: p_psi_psi, p_psi_phi, p_phi_phi
