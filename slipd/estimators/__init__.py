@@ -1,6 +1,6 @@
 """The estimators: one shape for every method, registered by name (``registry``).
 
-A method is a module (``zero.py``, ``linear_kf.py``, ``ensemble.py``, or one in a package per
+A method is a module (``zero.py``, ``linear_kf.py``, or a package: ``ensemble/`` and one per
 paper: ``selmanaj2017/``, ``righetti_lenzo2025/``, ``carnier2023/``, ``chen2018/``,
 ``yoon2016/``) built from the blocks in ``common/`` (layouts, inputs, filters, kinematics,
 tyres, Kalman algebra, outputs, vehicle checks). It exposes:

@@ -37,24 +37,36 @@ def per_step(variance, dt, interval):
     return variance * (dt / interval)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def predict_covariance(state, p0, scratch, F, Q):
     """P^- = F P F' + Q, Q diagonal. ``F``: the n x n transition (Jacobian) as a row-major
-    tuple, ``Q``: its n diagonal elements (per step); P packed at ``p0``, n * n scratch."""
+    tuple, ``Q``: its n diagonal elements (per step); P packed at ``p0``, n * n scratch.
+    Zero elements of ``F`` are skipped: a literal 0.0 in the caller's tuple costs
+    nothing once numba has inlined the kernel, so a sparse F runs as its hand-written form."""
     n = len(Q)
     # B = F P
     for i in range(n):
         for j in range(n):
-            acc = F[i * n] * state[p0 + tri(0, j, n)]
-            for k in range(1, n):
-                acc += F[i * n + k] * state[p0 + tri(k, j, n)]
+            acc = 0.0
+            first = True
+            for k in range(n):
+                f = F[i * n + k]
+                if f != 0.0:
+                    term = f * state[p0 + tri(k, j, n)]
+                    acc = term if first else acc + term
+                    first = False
             state[scratch + i * n + j] = acc
     # P^- = B F' + Q
     for i in range(n):
         for j in range(i, n):
-            acc = state[scratch + i * n] * F[j * n]
-            for k in range(1, n):
-                acc += state[scratch + i * n + k] * F[j * n + k]
+            acc = 0.0
+            first = True
+            for k in range(n):
+                f = F[j * n + k]
+                if f != 0.0:
+                    term = state[scratch + i * n + k] * f
+                    acc = term if first else acc + term
+                    first = False
             if i == j:
                 acc += Q[i]
             state[p0 + tri(i, j, n)] = acc
@@ -70,7 +82,7 @@ def add_input_noise(state, p0, G, variance):
             state[p0 + tri(i, j, n)] += G[i] * variance * G[j]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def scalar_update(state, x0, p0, scratch, H, innovation, r):
     """Update with one scalar measurement y = H x + v, var(v) = r (``innovation`` = y - h(x^-)):
 
@@ -81,16 +93,24 @@ def scalar_update(state, x0, p0, scratch, H, innovation, r):
     with a diagonal R). ``H``: tuple of n; n scratch slots. Returns S (the innovation
     variance: innovation^2 / S is the normalised innovation squared)."""
     n = len(H)
-    # P H'
+    # P H' (zero elements of H skipped, as in ``predict_covariance``)
     for i in range(n):
-        acc = state[p0 + tri(i, 0, n)] * H[0]
-        for j in range(1, n):
-            acc += state[p0 + tri(i, j, n)] * H[j]
+        acc = 0.0
+        first = True
+        for j in range(n):
+            if H[j] != 0.0:
+                term = state[p0 + tri(i, j, n)] * H[j]
+                acc = term if first else acc + term
+                first = False
         state[scratch + i] = acc
     # S = H P H' + r
-    s = H[0] * state[scratch]
-    for i in range(1, n):
-        s += H[i] * state[scratch + i]
+    s = 0.0
+    first = True
+    for i in range(n):
+        if H[i] != 0.0:
+            term = H[i] * state[scratch + i]
+            s = term if first else s + term
+            first = False
     s += r
     # x = x + K (y - h), K = P H' / S
     for i in range(n):

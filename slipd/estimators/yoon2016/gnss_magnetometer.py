@@ -83,7 +83,6 @@ per-channel age): a repeated identical sample is skipped, which only loses one s
 
 from __future__ import annotations
 
-import enum
 import math
 
 import numba as nb
@@ -114,37 +113,22 @@ from slipd.estimators.common.inputs import (
     wheel_speeds,
 )
 from slipd.estimators.common.kalman import beta_sigma, tri
-from slipd.estimators.common.kinematics import kinematic_beta_rate, vehicle_roll_gain
+from slipd.estimators.common.kinematics import kinematic_beta_rate
 from slipd.estimators.common.outputs import held_sigma, write_held, write_outputs
 from slipd.estimators.common.vehicle import require_vehicle
 from slipd.estimators.yoon2016.friction import friction_update
-from slipd.estimators.yoon2016.heading import (
-    calibration_residual,
-    calibration_update,
-    field_norm_error,
-    heading_from_magnetometer,
-    heading_predict,
-    heading_roll_update,
-    heading_update,
-    magnetometer_model,
-    wrap_angle,
-)
+from slipd.estimators.yoon2016.params import DEFAULTS, PARAMS
 from slipd.estimators.yoon2016.sideslip import (
     entry,
-    fuse_delayed_gnss,
-    gnss_to_body,
     kf4_predict,
     save_entry,
-    start_kf,
 )
+from slipd.estimators.yoon2016.stages import gnss_sample, heading_tick, reset_calibration
 from slipd.estimators.yoon2016.state import (
     BUFFER_TICKS,
     CAL_C,
-    CAL_P,
     CAL_PRIOR,
     FINITE_END,
-    HEAD,
-    HEAD_P,
     IMU,
     KF,
     KF_P,
@@ -173,139 +157,6 @@ _LAST_MAG = int(S.LAST_MAG_X)
 _LAST_GNSS = int(S.LAST_VN)
 _MAG_SEEN = int(S.MAG_SEEN)
 _GNSS_SEEN = int(S.GNSS_SEEN)
-
-
-@enum.unique
-class PARAMS(enum.IntEnum):
-    # heading EKF (eq. 5-7, Sec. 2.2)
-    Q_PSI = 0  # rad^2/s, yaw random walk: gyro noise and the part of its bias not removed
-    Q_PHI = 1  # rad^2/s, roll random walk
-    R_MAG = 2  # uT^2 per axis: noise + model error of eq. 6 (pitch 0, calibration residual)
-    GATE_CHI2 = 3  # chi-square gate on d^2 (3 dof)
-    GATE_LOCKOUT_S = 4  # s of consecutive rejections before psi is re-initialised (slipd)
-    P0_PSI = 5  # rad^2
-    P0_PHI = 6  # rad^2
-    # site magnetic field: the calibration's prior (slipd)
-    DECLINATION = 7  # rad, east positive
-    INCLINATION = 8  # rad, down positive
-    FIELD_HORIZONTAL = 9  # uT
-    CAL_SIGMA_HARD_IRON = 10  # uT, prior 1-sigma of the offset column
-    CAL_SIGMA_SOFT_IRON = 11  # uT, prior 1-sigma of the cos / sin columns
-    CAL_R = 12  # uT^2, variance of one calibration sample
-    CAL_Q = 13  # uT^2 per sample, random walk of C
-    CAL_MAX_YAW_RATE = 14  # rad/s, "straight": |r| below
-    CAL_MAX_AY = 15  # m/s^2, "straight": centripetal |r V| below (not the measured a_y, whose
-    # gravity compensation needs the roll of the not yet calibrated magnetometer)
-    CAL_MIN_SPEED = 16  # m/s, course defined
-    ALIGN_SAMPLES = 17  # calibration samples that re-initialise psi / before convergence
-    ALIGN_TIMEOUT_S = 18  # s after the first fix the KF waits for a straight to align on
-    # sideslip KF (eq. 9-11)
-    Q_V = 19  # (m/s)^2/s, velocity random walk (accelerometer noise + model error)
-    Q_B = 20  # (m/s^2)^2/s, accelerometer bias random walk
-    R_GNSS = 21  # (m/s)^2, body-frame GNSS velocity (receiver + rotation error)
-    P0_V = 22  # (m/s)^2
-    P0_B = 23  # (m/s^2)^2
-    GNSS_DELAY = 24  # s, receiver latency (Sec. 5: 400 ms)
-    DELAY_COMPENSATION = 25  # 1 = fuse at the sampling tick (Sec. 2.3), 0 = as if current
-    ANTENNA_X = 26  # m, GNSS antenna from the CoG, body axes (slipd)
-    ANTENNA_Y = 27
-    ANTENNA_Z = 28
-    # friction EKF (eq. 13-16)
-    Q_MU = 29  # 1/s, mu random walk
-    R_AY = 30  # (m/s^2)^2
-    P0_MU = 31
-    MU_MIN = 32
-    MU_MAX = 33
-    MU_MIN_SENSITIVITY = 34  # m/s^2 per unit mu: excitation gate (slipd)
-    MU_MIN_SPEED = 35  # m/s
-    MU_CLASS_UPDATES = 36  # excited updates before a friction class is reported
-    # bookkeeping (slipd)
-    SETTLE_TICKS = 37  # ticks after the KF (re)start before convergence may be claimed
-    CONVERGED_SIGMA_BETA = 38  # rad
-    GNSS_OUTAGE_S = 39  # s without a GNSS sample before the estimate counts as unsettled
-    STANDSTILL_SPEED = 40  # m/s, every wheel below it = standstill (gyro offsets)
-    STANDSTILL_DELAY_S = 41  # s of standstill before the gyro offsets learn
-    GYRO_OFFSET_SETTLING_S = 42  # s, settling time of the standstill gyro offset filters
-    YAW_ACC_CUTOFF_HZ = 43  # Hz, derivative filters of the CoG translation
-    R_ROLL_STATIC = 44  # rad^2, roll pseudo-measurement from the static roll model (slipd)
-    MIN_SPEED = 45  # m/s, below it beta is reported as 0 and NOT_CONVERGED (slipd)
-    PITCH_FROM_BIAS = 46  # 1 = pitch -bx / g into eq. 5, 0 = the paper's pitch 0 (eq. 6)
-    MAX_PITCH = 47  # rad, clamp of that pitch estimate
-    YAW_BIAS_TIME_CONSTANT = 48  # s, integral correction of b_r from psi updates; 0 = off
-    MAX_YAW_RATE_BIAS = 49  # rad/s, clamp of that correction
-    FIELD_NORM_TOLERANCE = 50  # uT, |field norm - earth field| for a gate lock-out restart
-    MU_GATE_CHI2 = 51  # chi-square (1 dof): beyond it the a_y sample is down-weighted (slipd)
-
-DEFAULTS = {
-    # the heading EKF is driven by the gyro and corrected at 50 Hz; a small yaw random walk
-    # makes it average the magnetometer over seconds (passing disturbances, pitch errors) and
-    # leave the gyro bias to the integral term below (the sweep: benchmarks/MEASUREMENTS.md)
-    "q_psi": 1e-6,
-    "q_phi": 1e-4,
-    # 1.2 uT per axis: Table 1's noise is 0.05 uT; the rest is model error of eq. 5 (soft-iron
-    # residual at headings not yet calibrated, pitch from -bx / g, roll): the residual of the
-    # learned model with the true attitude was 0.8-1.3 uT RMS per axis on the simulator's
-    # endurance drive (the sweep of r_mag: benchmarks/MEASUREMENTS.md)
-    "r_mag": 1.5,
-    # chi-square 3 dof, 99.9 % (the paper gives the distribution, not the probability)
-    "gate_chi2": 16.27,
-    # longer than the simulator's and the paper's passing disturbances (trucks, poles: 1-4 s)
-    "gate_lockout_s": 5.0,
-    "p0_psi": 0.1,
-    "p0_phi": 0.003,
-    # central Europe (WMM, about 50 N 10 E): set per site; the calibration learns the rest
-    "declination": math.radians(4.0),
-    "inclination": math.radians(64.5),
-    "field_horizontal": 21.0,
-    "cal_sigma_hard_iron": 10.0,
-    "cal_sigma_soft_iron": 2.0,
-    "cal_r": 0.04,
-    "cal_q": 1e-6,
-    "cal_max_yaw_rate": math.radians(1.0),
-    "cal_max_ay": 0.5,
-    "cal_min_speed": 5.0,
-    "align_samples": 3.0,
-    "align_timeout_s": 10.0,
-    "q_v": 0.05,
-    "q_b": 1e-3,
-    "r_gnss": 0.01,
-    "p0_v": 1.0,
-    "p0_b": 0.04,
-    "gnss_delay": 0.4,
-    "delay_compensation": 1.0,
-    "antenna_x": 0.0,
-    "antenna_y": 0.0,
-    "antenna_z": 0.0,
-    "q_mu": 0.01,
-    "r_ay": 0.25,
-    "p0_mu": 0.25,
-    "mu_min": 0.05,
-    "mu_max": 1.5,
-    "mu_min_sensitivity": 2.0,
-    "mu_min_speed": 5.0,
-    "mu_class_updates": 50.0,
-    "settle_ticks": 100.0,
-    "converged_sigma_beta": 0.0175,
-    "gnss_outage_s": 1.0,
-    "standstill_speed": 0.1,
-    "standstill_delay_s": 1.0,
-    "gyro_offset_settling_s": 150.0,
-    "yaw_acc_cutoff_hz": 10.0,
-    # (2 deg)^2: loose enough for the magnetometer to lead, tight enough to stop the roll
-    # drifting with an unremoved roll-rate bias into a wrong (heading, roll) pair
-    "r_roll_static": math.radians(2.0) ** 2,
-    "min_speed": 2.0,
-    "pitch_from_bias": 1.0,
-    "max_pitch": math.radians(10.0),
-    "yaw_bias_time_constant": 60.0,
-    "max_yaw_rate_bias": math.radians(2.0),
-    # 3 sigma: an a_y the brush model cannot explain at any nearby mu is more likely a beta
-    # error or a longitudinal force (which the paper's model leaves out) than mu
-    "mu_gate_chi2": 9.0,
-    # 3 uT: the norm residual of the learned calibration reached 2-3 uT in handling (roll,
-    # headings not yet calibrated); a truck's disturbance is 2-15 uT
-    "field_norm_tolerance": 3.0,
-}
 
 
 #: Friction classes of Out.FRICTION_CLASS by the estimated mu (slipd): below 0.4 low (ice,
@@ -342,83 +193,6 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     state[S.MU] = vehicle[Veh.MU_NOMINAL]
     state[S.MU_P] = params[PARAMS.P0_MU]
     return state
-
-def reset_calibration(state: np.ndarray, params: np.ndarray) -> None:
-    """The calibration's prior: the site field seen by an ideal magnetometer (heading docstring)."""
-    horizontal = params[PARAMS.FIELD_HORIZONTAL]
-    east = horizontal * math.sin(params[PARAMS.DECLINATION])
-    north = horizontal * math.cos(params[PARAMS.DECLINATION])
-    up = -horizontal * math.tan(params[PARAMS.INCLINATION])
-    state[CAL_C : CAL_C + 9] = (east, north, 0.0, north, -east, 0.0, 0.0, 0.0, up)
-    soft = params[PARAMS.CAL_SIGMA_SOFT_IRON] ** 2
-    hard = params[PARAMS.CAL_SIGMA_HARD_IRON] ** 2
-    state[CAL_P : CAL_P + 9] = (soft, 0.0, 0.0, 0.0, soft, 0.0, 0.0, 0.0, hard)
-    state[CAL_PRIOR : CAL_PRIOR + 18] = state[CAL_C : CAL_C + 18]
-
-@nb.njit(cache=True)
-def start_heading(state, psi, phi, params):
-    state[S.HEAD_PSI] = psi
-    state[S.HEAD_PHI] = phi
-    state[HEAD_P] = params[PARAMS.P0_PSI]
-    state[HEAD_P + 1] = 0.0
-    state[HEAD_P + 2] = params[PARAMS.P0_PHI]
-    state[S.HEAD_INIT] = 1.0
-    state[S.GATE_REJECT_RUN] = 0.0
-    state[S.HISTORY_START_TICK] = state[S.TICK]  # the stored attitudes before are stale
-
-@nb.njit(cache=True)
-def calibration_sample(state, sample_tick, v_north, v_east, params):
-    """Calibrate the magnetometer against a GNSS course when the car drove straight at the
-    sampling tick (beta ~ 0, so the course is the heading; slipd, see the module docstring).
-
-    The first ``align_samples`` samples re-initialise the heading EKF (start-up alignment) and
-    ask the sideslip KF to restart. Returns True when a sample was taken.
-    """
-    es = entry(sample_tick)
-    speed = math.hypot(v_north, v_east)
-    yaw_rate = state[es + E.YAW_RATE]
-    if not (
-        speed > params[PARAMS.CAL_MIN_SPEED]
-        and abs(yaw_rate) < params[PARAMS.CAL_MAX_YAW_RATE]
-        and abs(yaw_rate) * speed < params[PARAMS.CAL_MAX_AY]
-        and math.isfinite(state[es + E.MAG_X])
-    ):
-        return False
-    course = math.atan2(v_north, v_east)
-    # the sample levelled: the model's change from (roll, pitch) of the sampling tick to level
-    # taken off (bank and grade would otherwise enter the fit as offsets)
-    inclination = params[PARAMS.INCLINATION]
-    tilted = magnetometer_model(
-        state, CAL_C, course, state[es + E.PHI], state[es + E.PITCH], inclination
-    )
-    level = magnetometer_model(state, CAL_C, course, 0.0, 0.0, inclination)
-    m_x = state[es + E.MAG_X] - tilted[0] + level[0]
-    m_y = state[es + E.MAG_Y] - tilted[1] + level[1]
-    m_z = state[es + E.MAG_Z] - tilted[2] + level[2]
-    # a disturbed field must not bend the fit, but a fit that went wrong must still be able to
-    # come back: a sample beyond the chi-square gate is down-weighted by d^2 / gate (Huber)
-    # instead of rejected
-    r_sample = params[PARAMS.CAL_R]
-    if state[S.CAL_SAMPLES] >= params[PARAMS.ALIGN_SAMPLES]:
-        d2 = calibration_residual(
-            state, CAL_C, CAL_P, course, m_x, m_y, m_z, params[PARAMS.R_MAG]
-        )
-        if d2 > params[PARAMS.GATE_CHI2]:
-            r_sample *= d2 / params[PARAMS.GATE_CHI2]
-    calibration_update(state, CAL_C, CAL_P, course, m_x, m_y, m_z, r_sample,
-                       params[PARAMS.CAL_Q])  # fmt: skip
-    state[S.CAL_SAMPLES] += 1.0
-    if state[S.CAL_SAMPLES] <= params[PARAMS.ALIGN_SAMPLES]:
-        psi = heading_from_magnetometer(state, CAL_C, state[S.LAST_MAG_X], state[S.LAST_MAG_Y])
-        if math.isfinite(psi):
-            # roll 0 on the straight: the roll learned against the uncalibrated model is as
-            # wrong as its heading was
-            start_heading(state, psi, 0.0, params)
-            # and the sideslip KF restarts: its biases would otherwise explain the jump of
-            # the rotated GNSS velocity as an acceleration offset
-            state[S.KF_INIT] = 0.0
-    return True
-
 
 @nb.njit(cache=True)
 def state_is_finite(state):
@@ -510,119 +284,6 @@ def _new_samples(state, u, status):
 
 
 @nb.njit(cache=True, inline="always")
-def _magnetometer_update(state, params, tick, m_x, m_y, m_z, dt):
-    """A new magnetometer sample into the heading EKF behind the gate (Sec. 2.2), with the
-    gate lock-out and the integral trim of the yaw-rate bias (slipd, module docstring)."""
-    psi_before = state[S.HEAD_PSI]
-    gate = params[PARAMS.GATE_CHI2]
-    if state[S.GATE_REJECT_RUN] * dt > params[PARAMS.GATE_LOCKOUT_S] and (
-        field_norm_error(state, CAL_C, m_x, m_y, m_z, state[S.HEAD_PHI], state[S.PITCH],
-                         params[PARAMS.INCLINATION])
-        < params[PARAMS.FIELD_NORM_TOLERANCE]
-    ):  # fmt: skip
-        # lock-out: the gate has rejected for long, yet the field's norm is the earth
-        # field's (Sec. 2.2's basis of disturbance detection), so the model, not the
-        # field, is wrong: psi restarts from the calibrated magnetometer
-        psi0 = heading_from_magnetometer(state, CAL_C, m_x, m_y)
-        if math.isfinite(psi0):
-            start_heading(state, psi0, state[S.HEAD_PHI], params)
-            state[S.HISTORY_START_TICK] = tick  # this tick's entry is still to come
-    d2 = heading_update(
-        state, HEAD, HEAD_P, state, CAL_C, m_x, m_y, m_z, state[S.PITCH],
-        params[PARAMS.R_MAG], params[PARAMS.INCLINATION], gate,
-    )  # fmt: skip
-    state[S.LAST_D2] = d2
-    if not d2 <= gate:
-        state[S.GATE_REJECTS] += 1.0
-        return
-    state[S.GATE_ACCEPTS] += 1.0
-    state[S.GATE_REJECT_RUN] = 0.0
-    tau_bias = params[PARAMS.YAW_BIAS_TIME_CONSTANT]
-    if tau_bias > 0.0 and gate < math.inf:
-        # slipd: the integral part of a complementary filter. A yaw-rate bias makes
-        # every update correct psi the same way; the corrections, integrated with
-        # time constant tau, are the bias (b_r of eq. 7 without a standstill)
-        correction = wrap_angle(state[S.HEAD_PSI] - psi_before)
-        limit = params[PARAMS.MAX_YAW_RATE_BIAS]
-        bias = state[S.YAW_RATE_BIAS] - correction / tau_bias
-        state[S.YAW_RATE_BIAS] = min(max(bias, -limit), limit)
-
-
-@nb.njit(cache=True, inline="always")
-def _heading_tick(state, params, vehicle, tick, m_x, m_y, m_z, mag_ok, new_mag, ay_imu, ay_ok,
-                  dt):  # fmt: skip
-    """1. the heading EKF (eq. 5-7): started from the magnetometer, then predicted with the
-    bias-free rates of tick k-1 and updated with each new sample (``_magnetometer_update``) and
-    the static roll pseudo-measurement (slipd)."""
-    if state[S.HEAD_INIT] < 0.5:
-        if mag_ok:
-            psi0 = heading_from_magnetometer(state, CAL_C, m_x, m_y)
-            if math.isfinite(psi0):
-                start_heading(state, psi0, 0.0, params)
-        return
-    heading_predict(
-        state, HEAD, HEAD_P, state[S.PREV_YAW_RATE] - state[S.YAW_RATE_BIAS],
-        state[S.PREV_ROLL_RATE], params[PARAMS.Q_PSI] * dt, params[PARAMS.Q_PHI] * dt, dt,
-    )  # fmt: skip
-    state[S.GATE_REJECT_RUN] += 1.0  # ticks since the last accepted sample
-    if new_mag:
-        _magnetometer_update(state, params, tick, m_x, m_y, m_z, dt)
-    if ay_ok and params[PARAMS.R_ROLL_STATIC] > 0.0:
-        # slipd: the static roll model (Selmanaj 2017 eq. 16, common.kinematics) as a weak
-        # pseudo-measurement; eq. 6 alone lets an uncalibrated field direction trade heading
-        # for roll
-        heading_roll_update(state, HEAD, HEAD_P, SCRATCH, ay_imu * vehicle_roll_gain(vehicle),
-                            params[PARAMS.R_ROLL_STATIC])  # fmt: skip
-
-
-@nb.njit(cache=True, inline="always")
-def _gnss_sample(state, params, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate,
-                 v_north, v_east, v_up, dt):  # fmt: skip
-    """A new GNSS sample (Sec. 2.3): calibrates the magnetometer when the car drove straight at
-    its sampling tick, then is fused into the running sideslip KF at that tick, or (re)starts
-    the KF once aligned. Returns whether the KF runs."""
-    if not math.isfinite(state[S.FIRST_FIX_TICK]):
-        state[S.FIRST_FIX_TICK] = tick
-    delay_ticks = 0.0
-    if params[PARAMS.DELAY_COMPENSATION] > 0.5:
-        delay_ticks = min(float(round(params[PARAMS.GNSS_DELAY] / dt)), BUFFER_TICKS - 2.0)
-    sample_tick = max(tick - delay_ticks, state[S.HISTORY_START_TICK])
-    calibration_sample(state, sample_tick, v_north, v_east, params)
-    if state[S.HISTORY_START_TICK] > tick:
-        # the heading was just re-aligned: this tick's entry gets the new attitude
-        save_entry(state, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate)
-        state[S.HISTORY_START_TICK] = tick
-    kf_running = state[S.KF_INIT] > 0.5  # an alignment step restarts the KF
-    aligned = state[S.CAL_SAMPLES] >= 1.0 or (
-        (tick - state[S.FIRST_FIX_TICK]) * dt > params[PARAMS.ALIGN_TIMEOUT_S]
-    )
-    sample_tick = max(sample_tick, state[S.HISTORY_START_TICK])
-    if kf_running:
-        sample_tick = max(sample_tick, state[S.KF_START_TICK])
-        fuse_delayed_gnss(
-            state, tick, sample_tick, v_north, v_east, v_up, params[PARAMS.ANTENNA_X],
-            params[PARAMS.ANTENNA_Y], params[PARAMS.ANTENNA_Z], params[PARAMS.Q_V] * dt,
-            params[PARAMS.Q_B] * dt, params[PARAMS.R_GNSS], dt,
-        )  # fmt: skip
-        state[S.GNSS_AGE] = 0.0
-        state[S.GNSS_UPDATES] += 1.0
-    elif aligned:
-        # (re)start from this sample, rotated with the attitude of its sampling tick and
-        # taken as current: it is one delay old, an error of the velocity change over the
-        # delay that the filter settles within SETTLE_TICKS, before convergence is claimed
-        es = entry(sample_tick)
-        vx0, vy0 = gnss_to_body(
-            v_north, v_east, v_up, state[es + E.PSI], state[es + E.PHI],
-            state[es + E.YAW_RATE], state[es + E.ROLL_RATE], state[es + E.PITCH_RATE],
-            params[PARAMS.ANTENNA_X], params[PARAMS.ANTENNA_Y], params[PARAMS.ANTENNA_Z],
-        )  # fmt: skip
-        start_kf(state, vx0, vy0, params[PARAMS.P0_V], params[PARAMS.P0_B], tick)
-        save_entry(state, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate)
-        kf_running = True
-    return kf_running
-
-
-@nb.njit(cache=True, inline="always")
 def _restart(state, params, vehicle):
     """Reset on a non-finite or implausible state (openpilot paramsd's rule): the heading EKF
     and the sideslip KF restart; a broken calibration restarts from its prior."""
@@ -688,8 +349,8 @@ def step(state, u, params, vehicle, dt, out):
     )
 
     # --- 1. heading EKF (eq. 5-7) with the Mahalanobis gate (Sec. 2.2) ---------------------
-    _heading_tick(state, params, vehicle, tick, m_x, m_y, m_z, mag_ok, new_mag, ay_imu, ay_ok,
-                  dt)  # fmt: skip
+    heading_tick(state, params, vehicle, tick, m_x, m_y, m_z, mag_ok, new_mag, ay_imu, ay_ok,
+                 dt)  # fmt: skip
     state[S.PREV_YAW_RATE] = yaw_rate
     state[S.PREV_ROLL_RATE] = roll_rate
     head_running = state[S.HEAD_INIT] > 0.5
@@ -716,8 +377,8 @@ def step(state, u, params, vehicle, dt, out):
         state[S.GNSS_AGE] += 1.0
     save_entry(state, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate)
     if new_gnss:
-        kf_running = _gnss_sample(state, params, tick, ax, ay_no_gravity, yaw_rate, roll_rate,
-                                  pitch_rate, v_north, v_east, v_up, dt)  # fmt: skip
+        kf_running = gnss_sample(state, params, tick, ax, ay_no_gravity, yaw_rate, roll_rate,
+                                 pitch_rate, v_north, v_east, v_up, dt)  # fmt: skip
     if not kf_running:
         if state[S.GNSS_SEEN] < 0.5:
             status |= ST_UNAVAILABLE  # no fix ever: the method cannot run
@@ -793,4 +454,4 @@ def run_ticks_diagnostic(state, U, params, vehicle, dt, OUT, DIAG):
             DIAG[k, 7] = state[S.GATE_ACCEPTS]
 
 
-__all__ = ["DEFAULTS", "LAYOUT", "PARAMS", "REQUIRED", "init", "run_ticks", "step"]
+__all__ = ["DEFAULTS", "LAYOUT", "PARAMS", "PERSISTENT", "REQUIRED", "init", "run_ticks", "step"]

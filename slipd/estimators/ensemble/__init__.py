@@ -104,9 +104,7 @@ which is why slipd keys its whole numba cache to a hash of its sources (slipd/__
 from __future__ import annotations
 
 import enum
-import importlib
 import math
-from types import ModuleType
 
 import numba as nb
 import numpy as np
@@ -118,43 +116,32 @@ from slipd.channels import (
     ST_DEGRADED,
     ST_INPUT_TIMEOUT,
     ST_NOT_CONVERGED,
-    ST_RESET,
-    ST_UNAVAILABLE,
     VALID,
     Out,
 )
 from slipd.estimators import registry
 from slipd.estimators.carnier2023 import hybrid_friction
 from slipd.estimators.chen2018 import pseudo_fusion
-from slipd.estimators.common.layout import build_layout
 from slipd.estimators.common.outputs import write_outputs
+from slipd.estimators.ensemble.covariance import error_covariance, own_variance, update_moments
+from slipd.estimators.ensemble.state import (
+    _SPECS,
+    EXCLUDING,
+    FAMILY,
+    FUSION_END,
+    LAYOUT,
+    MEMBERS,
+    N_MEMBERS,
+    PERSISTENT,
+    F,
+    _member_out,
+    _member_params,
+    _member_state,
+    member_module,
+)
 from slipd.estimators.righetti_lenzo2025 import d_ekf, dk_ekf, k_kf
 from slipd.estimators.selmanaj2017 import kinematic_heuristic
 from slipd.estimators.yoon2016 import gnss_magnetometer
-
-#: The member methods, in the order of their slots (and of the calls in ``run_members``).
-MEMBERS = (
-    "kinematic_heuristic",
-    "dk_ekf",
-    "d_ekf",
-    "k_kf",
-    "hybrid_friction",
-    "pseudo_fusion",
-    "gnss_magnetometer",
-)
-_REGISTERED = tuple(spec.name for spec in registry.ensemble_members())
-if _REGISTERED != MEMBERS:
-    raise ImportError(f"ensemble: the registry's members {_REGISTERED} differ from the ones "
-                      f"run_members calls {MEMBERS}; add the call (or the registry flag)")
-N_MEMBERS = len(MEMBERS)
-_SPECS = tuple(registry.spec(name) for name in MEMBERS)
-_FAMILIES = tuple(dict.fromkeys(spec.family for spec in _SPECS))
-#: Family of each member (an index): members of one family share kernels (dk_ekf, d_ekf and
-#: k_kf are built from the same righetti_lenzo2025 dynamic EKF and kinematic KF), so their
-#: errors share a part the fit models as a common term C_f (module docstring).
-FAMILY = tuple(_FAMILIES.index(spec.family) for spec in _SPECS)
-#: A member's status bits that take it out of the fusion this tick.
-EXCLUDING = ST_UNAVAILABLE | ST_INPUT_TIMEOUT | ST_NOT_CONVERGED | ST_RESET
 
 
 class FUSION_PARAMS(enum.IntEnum):
@@ -170,15 +157,12 @@ FUSION_DEFAULTS = {
 }
 
 
-def _member_module(name: str) -> ModuleType:
-    return importlib.import_module(registry.spec(name).module)
-
 
 def _member_fields() -> list[tuple[str, float]]:
     """(PARAMS name, default) of every member param, prefixed with the member's name."""
     fields = []
     for spec in _SPECS:
-        module = _member_module(spec.name)
+        module = member_module(spec.name)
         values = registry.make_params(module, spec.overrides)
         for field in module.PARAMS:
             fields.append((f"{spec.name.upper()}__{field.name}", float(values[int(field)])))
@@ -195,42 +179,11 @@ PARAMS = enum.IntEnum(
 PARAMS.__doc__ = "Fusion params, then each member's params as <MEMBER>__<FIELD>."
 DEFAULTS = {**FUSION_DEFAULTS, **{name.lower(): value for name, value in _FIELDS}}
 
-#: The fusion block, then each member's state (module docstring).
-LAYOUT = build_layout(
-    "ensemble",
-    ("STATE_BOUNDS", N_MEMBERS + 1),  # start of member m's state; [N] the end of the last
-    ("PARAMS_BOUNDS", N_MEMBERS + 1),  # the same for the params vector
-    ("USABLE", N_MEMBERS),  # 1.0 when the member is usable this tick
-    ("USABLE_TICKS", N_MEMBERS),  # consecutive usable ticks
-    ("FUSED", N_MEMBERS),  # 1.0 when the member enters this tick's fusion
-    ("WEIGHT", N_MEMBERS),  # the weights w_i of the last tick
-    ("VARIANCE", N_MEMBERS),  # P_ii of the last tick, rad^2 (NaN: not fused)
-    ("MOMENT", N_MEMBERS * N_MEMBERS),  # D_ij (row-major, symmetric, diagonal unused)
-    ("MASS", N_MEMBERS * N_MEMBERS),  # M_ij, the EWMA weight collected
-    ("REQUIRED", N_MEMBERS * N_IN),  # 1.0 where member m requires channel
-    ("MEMBER_OUT", N_MEMBERS * N_OUT),  # the members' outputs of this tick
-    ("INDEX", N_MEMBERS),  # scratch, member of each packed index
-    ("UNKNOWN", N_MEMBERS),  # scratch, unknown index of family f's C_f (-1: none)
-    ("SYSTEM", 4 * N_MEMBERS * N_MEMBERS),  # scratch, normal equations, then P (2N x 2N)
-    ("RHS", 2 * N_MEMBERS),  # scratch, right-hand side, then the solution
-    ("SCALE", 2 * N_MEMBERS),  # scratch, the diagonal scaling
-    ("COMMON", N_MEMBERS),  # C_f of family f of the last tick, rad^2
-    *((name.upper(), _member_module(name).LAYOUT) for name in MEMBERS),
-)
-F = LAYOUT.S
-_FUSION_END = int(F[MEMBERS[0].upper()])
-#: The members' persistent state (their learnt offsets and calibrations), by element name.
-PERSISTENT = tuple(
-    f"{name.upper()}.{_member_module(name).LAYOUT.element_names[i]}" for name in MEMBERS
-    for i in _member_module(name).LAYOUT.indices(getattr(_member_module(name), "PERSISTENT", ()))
-)
-
-
 def member_params(params: np.ndarray, name: str) -> np.ndarray:
     """The slice of the ensemble's params vector that is member ``name``'s params vector."""
     start = _N_FUSION
     for member in MEMBERS:
-        length = len(_member_module(member).PARAMS)
+        length = len(member_module(member).PARAMS)
         if member == name:
             return params[start : start + length]
         start += length
@@ -242,14 +195,14 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     member_states = []
     params_bounds = [_N_FUSION]
     for name in MEMBERS:
-        module = _member_module(name)
+        module = member_module(name)
         own = member_params(params, name)
         member_states.append(np.asarray(module.init(own.copy(), vehicle), dtype=np.float64))
         params_bounds.append(params_bounds[-1] + len(own))
     if params_bounds[-1] != len(params):
         raise ValueError(f"ensemble: params vector has {len(params)} elements, "
                          f"the members need {params_bounds[-1]}")
-    state_bounds = [_FUSION_END]
+    state_bounds = [FUSION_END]
     for member_state in member_states:
         state_bounds.append(state_bounds[-1] + len(member_state))
     if state_bounds[-1] != LAYOUT.size:
@@ -260,26 +213,11 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     state[F.PARAMS_BOUNDS : F.PARAMS_BOUNDS + N_MEMBERS + 1] = params_bounds
     state[F.VARIANCE : F.VARIANCE + N_MEMBERS] = np.nan
     for m, name in enumerate(MEMBERS):
-        for channel in getattr(_member_module(name), "REQUIRED", CORE_CHANNELS):
+        for channel in getattr(member_module(name), "REQUIRED", CORE_CHANNELS):
             state[F.REQUIRED + m * N_IN + int(channel)] = 1.0
         state[state_bounds[m] : state_bounds[m + 1]] = member_states[m]
     return state
 
-
-@nb.njit(cache=True)
-def _member_state(state, m):
-    return state[int(state[F.STATE_BOUNDS + m]) : int(state[F.STATE_BOUNDS + m + 1])]
-
-
-@nb.njit(cache=True)
-def _member_params(state, params, m):
-    return params[int(state[F.PARAMS_BOUNDS + m]) : int(state[F.PARAMS_BOUNDS + m + 1])]
-
-
-@nb.njit(cache=True)
-def _member_out(state, m):
-    start = F.MEMBER_OUT + m * N_OUT
-    return state[start : start + N_OUT]
 
 
 @nb.njit(cache=True, inline="always")
@@ -337,240 +275,6 @@ def mark_usable(state, u, entry_ticks):
 
 
 @nb.njit(cache=True)
-def update_moments(state, decay):
-    """D_ij, M_ij <- EWMA of (beta_i - beta_j)^2 and of 1 over the pairs usable this tick."""
-    for i in range(N_MEMBERS):
-        if state[F.USABLE + i] < 0.5:
-            continue
-        beta_i = state[F.MEMBER_OUT + i * N_OUT + Out.BETA]
-        for j in range(i + 1, N_MEMBERS):
-            if state[F.USABLE + j] < 0.5:
-                continue
-            diff = beta_i - state[F.MEMBER_OUT + j * N_OUT + Out.BETA]
-            ij = i * N_MEMBERS + j
-            d = (1.0 - decay) * state[F.MOMENT + ij] + decay * diff * diff
-            mass = (1.0 - decay) * state[F.MASS + ij] + decay
-            state[F.MOMENT + ij] = d
-            state[F.MOMENT + j * N_MEMBERS + i] = d
-            state[F.MASS + ij] = mass
-            state[F.MASS + j * N_MEMBERS + i] = mass
-
-
-@nb.njit(cache=True)
-def _moment(state, i, j):
-    """The bias-corrected moment D_ij / M_ij."""
-    ij = i * N_MEMBERS + j
-    mass = state[F.MASS + ij]
-    return state[F.MOMENT + ij] / mass if mass > 0.0 else 0.0
-
-
-@nb.njit(cache=True)
-def _own_variance(state, m):
-    sigma = state[F.MEMBER_OUT + m * N_OUT + Out.SIGMA_BETA]
-    return sigma * sigma if math.isfinite(sigma) and sigma > 0.0 else 0.0
-
-
-@nb.njit(cache=True)
-def _fused(state, m):
-    return state[F.FUSED + m] > 0.5
-
-
-#: Row stride of the scratch matrix at F.SYSTEM.
-STRIDE = 2 * N_MEMBERS
-
-
-@nb.njit(cache=True)
-def _solve_spd(state, n):
-    """Solve A x = b in place for the SPD n x n system A at ``state[F.SYSTEM:]`` (row stride
-    STRIDE) and b at ``state[F.RHS:]``, x replacing b: the system is first scaled to a unit
-    diagonal, then Gaussian elimination without pivoting (valid for SPD). False if a pivot is
-    not positive (A singular or not positive definite)."""
-    a0 = F.SYSTEM
-    b0 = F.RHS
-    for p in range(n):
-        diagonal = state[a0 + p * STRIDE + p]
-        if not diagonal > 0.0:
-            return False
-        state[F.SCALE + p] = 1.0 / math.sqrt(diagonal)
-    for p in range(n):
-        for q in range(n):
-            state[a0 + p * STRIDE + q] *= state[F.SCALE + p] * state[F.SCALE + q]
-        state[b0 + p] *= state[F.SCALE + p]
-    for k in range(n):
-        pivot = state[a0 + k * STRIDE + k]
-        if not pivot > 1e-12:
-            return False
-        for i in range(k + 1, n):
-            factor = state[a0 + i * STRIDE + k] / pivot
-            if factor != 0.0:
-                for j in range(k, n):
-                    state[a0 + i * STRIDE + j] -= factor * state[a0 + k * STRIDE + j]
-                state[b0 + i] -= factor * state[b0 + k]
-    for k in range(n - 1, -1, -1):
-        acc = state[b0 + k]
-        for j in range(k + 1, n):
-            acc -= state[a0 + k * STRIDE + j] * state[b0 + j]
-        state[b0 + k] = acc / state[a0 + k * STRIDE + k]
-    for p in range(n):
-        state[b0 + p] *= state[F.SCALE + p]
-    return True
-
-
-@nb.njit(cache=True)
-def _family_count(state, n, family):
-    count = 0
-    for p in range(n):
-        if FAMILY[int(state[F.INDEX + p])] == family:
-            count += 1
-    return count
-
-
-@nb.njit(cache=True)
-def _add_pair(state, p, q, fp, fq, same, weight, value):
-    """Add one pair's row a (U_p + U_q [+ C_fp + C_fq across families]) to the normal
-    equations: A += weight a a', b += weight a value."""
-    k0 = p
-    k1 = q
-    k2 = -1
-    k3 = -1
-    if not same:
-        k2 = int(state[F.UNKNOWN + fp])
-        k3 = int(state[F.UNKNOWN + fq])
-    for a in (k0, k1, k2, k3):
-        if a < 0:
-            continue
-        state[F.RHS + a] += weight * value
-        for b in (k0, k1, k2, k3):
-            if b >= 0:
-                state[F.SYSTEM + a * STRIDE + b] += weight
-
-
-@nb.njit(cache=True, inline="always")
-def _select_fused(state):
-    """Reset the tick's weights, variances and family terms; the fused members' indices into
-    ``state[F.INDEX:]``. Returns their number n."""
-    n = 0
-    for i in range(N_MEMBERS):
-        state[F.VARIANCE + i] = math.nan
-        state[F.WEIGHT + i] = 0.0
-        state[F.COMMON + i] = 0.0
-        state[F.UNKNOWN + i] = -1.0
-        if _fused(state, i):
-            state[F.INDEX + n] = i
-            n += 1
-    return n
-
-
-@nb.njit(cache=True, inline="always")
-def _fit_moments(state, n, floor):
-    """The N-cornered hat with family terms (module docstring): U_p of the n fused members and
-    C_f of each identifiable family, fitted to the moments by weighted least squares (the
-    solution in ``state[F.RHS:]``, C_f into ``state[F.COMMON:]``). Returns whether it was
-    solved (it needs n >= 3 and a positive definite system)."""
-    # unknowns: U_p for p < n, then C_f of each family with >= 2 fused members and >= 2 fused
-    # members outside it (else C_f is not identifiable and taken as 0)
-    m = n
-    for family in range(N_MEMBERS):
-        inside = _family_count(state, n, family)
-        if inside >= 2 and n - inside >= 2:
-            state[F.UNKNOWN + family] = m
-            m += 1
-    if n < 3:
-        return False
-    for a in range(m):
-        state[F.RHS + a] = 0.0
-        for b in range(m):
-            state[F.SYSTEM + a * STRIDE + b] = 0.0
-    for p in range(n):
-        i = int(state[F.INDEX + p])
-        for q in range(p + 1, n):
-            j = int(state[F.INDEX + q])
-            d = _moment(state, i, j)
-            weight = 1.0 / ((d + floor) * (d + floor))
-            _add_pair(state, p, q, FAMILY[i], FAMILY[j], FAMILY[i] == FAMILY[j], weight, d)
-    if not _solve_spd(state, m):
-        return False
-    for family in range(N_MEMBERS):
-        k = int(state[F.UNKNOWN + family])
-        if k >= 0:
-            state[F.COMMON + family] = max(state[F.RHS + k], 0.0)
-    return True
-
-
-@nb.njit(cache=True, inline="always")
-def _member_variances(state, n, solved, floor):
-    """P_ii = max(U_i + C_f, own sigma^2) + floor into ``state[F.VARIANCE:]`` (with n = 2 the
-    moment shared in proportion to the own variances, with n = 1 the own variance)."""
-    for p in range(n):
-        i = int(state[F.INDEX + p])
-        own = _own_variance(state, i)
-        if solved:
-            hat = max(state[F.RHS + p], 0.0) + state[F.COMMON + FAMILY[i]]
-        elif n == 2:
-            other = int(state[F.INDEX + 1 - p])
-            own_other = _own_variance(state, other)
-            share = own / (own + own_other) if own + own_other > 0.0 else 0.5
-            hat = share * _moment(state, i, other)
-        else:
-            hat = own
-        state[F.VARIANCE + i] = max(hat, own) + floor
-
-
-@nb.njit(cache=True, inline="always")
-def _covariance(state, i, j, diagonal):
-    """P_ij of the model: P_ii on the diagonal, C_f within a family, 0 across families."""
-    if diagonal:
-        return state[F.VARIANCE + i]
-    if FAMILY[i] == FAMILY[j]:
-        return state[F.COMMON + FAMILY[i]]
-    return 0.0
-
-
-@nb.njit(cache=True, inline="always")
-def _minimum_variance_weights(state, n):
-    """Eq. 38 with the model's P: x = P^-1 1 (P rebuilt in the scratch matrix), negative x
-    (a member correlated with a better one) clipped, w = x / (1' x) into ``state[F.WEIGHT:]``."""
-    for p in range(n):
-        i = int(state[F.INDEX + p])
-        state[F.RHS + p] = 1.0
-        for q in range(n):
-            state[F.SYSTEM + p * STRIDE + q] = _covariance(state, i, int(state[F.INDEX + q]),
-                                                           p == q)  # fmt: skip
-    if not _solve_spd(state, n):
-        for p in range(n):  # cannot happen for P = diag + family blocks; diagonal P then
-            state[F.RHS + p] = 1.0 / state[F.VARIANCE + int(state[F.INDEX + p])]
-    total = 0.0
-    for p in range(n):
-        x = state[F.RHS + p]
-        total += x if x > 0.0 else 0.0
-    for p in range(n):
-        x = state[F.RHS + p]
-        state[F.WEIGHT + int(state[F.INDEX + p])] = x / total if x > 0.0 else 0.0
-
-
-@nb.njit(cache=True)
-def error_covariance(state, floor):
-    """P of the fused members (module docstring) and the weights of eq. 38 into
-    ``state[F.WEIGHT:]``; P_ii into ``state[F.VARIANCE:]`` (NaN for members not fused), C_f
-    into ``state[F.COMMON:]``. Returns (number fused, fused variance w' P w)."""
-    n = _select_fused(state)
-    if n == 0:
-        return 0, math.nan
-    solved = _fit_moments(state, n, floor)
-    _member_variances(state, n, solved, floor)
-    _minimum_variance_weights(state, n)
-    # fused variance w' P w
-    variance = 0.0
-    for p in range(n):
-        i = int(state[F.INDEX + p])
-        for q in range(n):
-            j = int(state[F.INDEX + q])
-            variance += state[F.WEIGHT + i] * state[F.WEIGHT + j] * _covariance(state, i, j,
-                                                                                p == q)
-    return n, variance
-
-
-@nb.njit(cache=True)
 def _weighted_mean(state, channel):
     """sum w_i y_i / sum w_i over the members with w_i > 0 and a finite y_i (NaN if none)."""
     num = 0.0
@@ -607,7 +311,7 @@ def fuse(state, floor, out):
             ok = math.isfinite(state[row + Out.BETA]) and math.isfinite(state[row + Out.VX])
             if any_usable:
                 ok = state[F.USABLE + m] > 0.5
-            w = 1.0 / (_own_variance(state, m) + floor) if ok else 0.0
+            w = 1.0 / (own_variance(state, m) + floor) if ok else 0.0
             state[F.WEIGHT + m] = w
             total += w
         for m in range(N_MEMBERS):
@@ -656,3 +360,8 @@ def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])
 
+
+
+__all__ = ["DEFAULTS", "FAMILY", "FUSION_PARAMS", "LAYOUT", "MEMBERS", "N_MEMBERS", "PARAMS",
+           "PERSISTENT", "F", "error_covariance", "fuse", "fuse_tick", "init", "member_params",
+           "run_ticks", "step"]

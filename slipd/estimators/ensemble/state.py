@@ -1,0 +1,92 @@
+"""The ensemble's members (the registry's ``ensemble=True`` Specs) and its state layout: the
+fusion block, then each member's own state (``ensemble`` module docstring)."""
+
+from __future__ import annotations
+
+import importlib
+from types import ModuleType
+
+import numba as nb
+
+from slipd.channels import N_IN, N_OUT, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, ST_UNAVAILABLE
+from slipd.estimators import registry
+from slipd.estimators.common.layout import build_layout
+
+#: The member methods, in the order of their slots (and of the calls in ``run_members``).
+MEMBERS = (
+    "kinematic_heuristic",
+    "dk_ekf",
+    "d_ekf",
+    "k_kf",
+    "hybrid_friction",
+    "pseudo_fusion",
+    "gnss_magnetometer",
+)
+_REGISTERED = tuple(spec.name for spec in registry.ensemble_members())
+if _REGISTERED != MEMBERS:
+    raise ImportError(f"ensemble: the registry's members {_REGISTERED} differ from the ones "
+                      f"run_members calls {MEMBERS}; add the call (or the registry flag)")
+N_MEMBERS = len(MEMBERS)
+_SPECS = tuple(registry.spec(name) for name in MEMBERS)
+_FAMILIES = tuple(dict.fromkeys(spec.family for spec in _SPECS))
+#: Family of each member (an index): members of one family share kernels (dk_ekf, d_ekf and
+#: k_kf are built from the same righetti_lenzo2025 dynamic EKF and kinematic KF), so their
+#: errors share a part the fit models as a common term C_f (module docstring).
+FAMILY = tuple(_FAMILIES.index(spec.family) for spec in _SPECS)
+#: A member's status bits that take it out of the fusion this tick.
+EXCLUDING = ST_UNAVAILABLE | ST_INPUT_TIMEOUT | ST_NOT_CONVERGED | ST_RESET
+
+
+
+
+def member_module(name: str) -> ModuleType:
+    return importlib.import_module(registry.spec(name).module)
+
+
+#: The fusion block, then each member's state (module docstring).
+LAYOUT = build_layout(
+    "ensemble",
+    ("STATE_BOUNDS", N_MEMBERS + 1),  # start of member m's state; [N] the end of the last
+    ("PARAMS_BOUNDS", N_MEMBERS + 1),  # the same for the params vector
+    ("USABLE", N_MEMBERS),  # 1.0 when the member is usable this tick
+    ("USABLE_TICKS", N_MEMBERS),  # consecutive usable ticks
+    ("FUSED", N_MEMBERS),  # 1.0 when the member enters this tick's fusion
+    ("WEIGHT", N_MEMBERS),  # the weights w_i of the last tick
+    ("VARIANCE", N_MEMBERS),  # P_ii of the last tick, rad^2 (NaN: not fused)
+    ("MOMENT", N_MEMBERS * N_MEMBERS),  # D_ij (row-major, symmetric, diagonal unused)
+    ("MASS", N_MEMBERS * N_MEMBERS),  # M_ij, the EWMA weight collected
+    ("REQUIRED", N_MEMBERS * N_IN),  # 1.0 where member m requires channel
+    ("MEMBER_OUT", N_MEMBERS * N_OUT),  # the members' outputs of this tick
+    ("INDEX", N_MEMBERS),  # scratch, member of each packed index
+    ("UNKNOWN", N_MEMBERS),  # scratch, unknown index of family f's C_f (-1: none)
+    ("SYSTEM", 4 * N_MEMBERS * N_MEMBERS),  # scratch, normal equations, then P (2N x 2N)
+    ("RHS", 2 * N_MEMBERS),  # scratch, right-hand side, then the solution
+    ("SCALE", 2 * N_MEMBERS),  # scratch, the diagonal scaling
+    ("COMMON", N_MEMBERS),  # C_f of family f of the last tick, rad^2
+    *((name.upper(), member_module(name).LAYOUT) for name in MEMBERS),
+)
+F = LAYOUT.S
+FUSION_END = int(F[MEMBERS[0].upper()])  # the first member's state starts here
+#: The members' persistent state (their learnt offsets and calibrations), by element name.
+PERSISTENT = tuple(
+    f"{name.upper()}.{member_module(name).LAYOUT.element_names[i]}" for name in MEMBERS
+    for i in member_module(name).LAYOUT.indices(getattr(member_module(name), "PERSISTENT", ()))
+)
+
+
+
+@nb.njit(cache=True)
+def _member_state(state, m):
+    return state[int(state[F.STATE_BOUNDS + m]) : int(state[F.STATE_BOUNDS + m + 1])]
+
+
+@nb.njit(cache=True)
+def _member_params(state, params, m):
+    return params[int(state[F.PARAMS_BOUNDS + m]) : int(state[F.PARAMS_BOUNDS + m + 1])]
+
+
+@nb.njit(cache=True)
+def _member_out(state, m):
+    start = F.MEMBER_OUT + m * N_OUT
+    return state[start : start + N_OUT]
+
