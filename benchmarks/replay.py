@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.codec import bus_frames
-from slipd.channels import N_OUT, VALID, In, new_u
+from slipd.channels import N_OUT, VALID, In, Out, new_u
 from slipd.codec import Codec
 from slipd.estimators import registry
 from slipd.profile import load_profile
@@ -108,7 +108,7 @@ def main() -> None:
             timings.append((done - started, read_done - started, latch_done - read_done,
                             done - latch_done))
         total, read_s, latch_s, est_s = min(timings)
-        assert not np.isnan(estimate.out[:, 0]).all()
+        assert not np.isnan(estimate.out[:, Out.BETA]).all()
         n = len(frames)
         count, slow = library_path(log, profile, args.estimator, args.library_frames)
     fast_rate, slow_rate = n / total, count / slow

@@ -142,13 +142,6 @@ def new_u() -> np.ndarray:
     return np.zeros(U_LEN, dtype=np.float64)
 
 
-def new_out() -> np.ndarray:
-    """An output vector filled with NaN and no status bits."""
-    out = np.full(N_OUT, np.nan, dtype=np.float64)
-    out[Out.STATUS] = 0.0
-    return out
-
-
 #: SI unit of each estimator output (the comments of :class:`Out`).
 OUT_UNITS: dict[Out, str] = {
     Out.BETA: "rad", Out.BETA_RATE: "rad/s", Out.VX: "m/s", Out.VY: "m/s", Out.MU: "1",

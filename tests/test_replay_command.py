@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slipd.channels import Out
 from slipd.cli import main
 from slipd.codec import Codec
 from slipd.profile import load_profile
@@ -44,7 +45,7 @@ def test_csv_and_parquet_tables_hold_the_same_estimates(drive, tmp_path):
     expected = run_log(drive / "a.log", "default", ["kinematic_heuristic"])["kinematic_heuristic"]
     ours = [k for k, name in enumerate(table["estimator"]) if name == "kinematic_heuristic"]
     beta = np.array(table["beta_deg"])[ours]
-    assert np.allclose(beta, np.degrees(expected.out[:, 0]), atol=1e-12)
+    assert np.allclose(beta, np.degrees(expected.out[:, Out.BETA]), atol=1e-12)
     csv_beta = np.array([float(r[header.index("beta_deg")]) for r in rows])
     assert np.allclose(csv_beta, np.array(table["beta_deg"]), atol=1e-5)  # CSV: 5 decimals
     assert table["mu"][ours[0]] is None  # not estimated: null, as the CSV's empty field

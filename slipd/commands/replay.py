@@ -60,6 +60,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     """Replay one log; returns the summary text."""
     import time
 
+    from slipd.channels import Out, Status
     from slipd.estimators import registry
     from slipd.profile import load_profile
     from slipd.replay import outputs
@@ -85,7 +86,8 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
         if rejected:
             lines.append(f"  {name}: rejected {rejected}")
     for estimate in estimates:
-        valid = (estimate.out[:, 8].astype(int) & 1).mean() if len(estimate.t) else 0.0
+        status = estimate.out[:, Out.STATUS].astype(int)
+        valid = ((status & Status.VALID) != 0).mean() if len(estimate.t) else 0.0
         lines.append(f"  {estimate.method}: {valid * 100:.1f} % of ticks valid")
     if out is not None:
         lines.append(_write_out(out, log, profile, methods, frames, inputs, estimates, truth))

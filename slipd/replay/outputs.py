@@ -7,7 +7,7 @@ import numpy as np
 from slipd.codec import N_TX, Codec, kernels
 from slipd.codec.tx import fill_tx_rows
 from slipd.estimators import registry
-from slipd.replay.candump import FLAG_BRS, FLAG_EXTENDED, FLAG_FD, Frames
+from slipd.replay.candump import FLAG_BRS, FLAG_DIRECTION, FLAG_EXTENDED, FLAG_FD, FLAG_TX, Frames
 
 
 def tx_values(out: np.ndarray, estimator_id: int) -> np.ndarray:
@@ -37,7 +37,8 @@ def output_frames(estimate, channel_index: int, first_counter: int = 0,
     for k, (fid, rows) in enumerate(parts):
         frame_id[k::2] = fid
         data[k::2] = rows
-    flags = 128 | 64 | (FLAG_FD | FLAG_BRS if codec_plan.is_fd("SLIPD_STATE") else 0)
+    flags = FLAG_DIRECTION | FLAG_TX  # sent by slipd
+    flags |= FLAG_FD | FLAG_BRS if codec_plan.is_fd("SLIPD_STATE") else 0
     flags |= FLAG_EXTENDED if codec_plan.is_extended("SLIPD_STATE") else 0
     return Frames(t, frame_id, np.full(2 * n, flags, np.uint8), np.full(2 * n, 8, np.uint8),
                   data, np.full(2 * n, channel_index, np.uint8), [])

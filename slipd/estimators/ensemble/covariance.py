@@ -53,6 +53,8 @@ def _fused(state, m):
 
 #: Row stride of the scratch matrix at F.SYSTEM.
 STRIDE = 2 * N_MEMBERS
+#: Pivot of the unit-diagonal (scaled) system below which it is taken as singular.
+SINGULAR_PIVOT = 1e-12
 
 
 @nb.njit(cache=True)
@@ -74,7 +76,7 @@ def _solve_spd(state, n):
         state[b0 + p] *= state[F.SCALE + p]
     for k in range(n):
         pivot = state[a0 + k * STRIDE + k]
-        if not pivot > 1e-12:
+        if not pivot > SINGULAR_PIVOT:
             return False
         for i in range(k + 1, n):
             factor = state[a0 + i * STRIDE + k] / pivot
