@@ -7,8 +7,12 @@ for SLIPD_AUX.ESTIMATOR_ID, and the catch-up rule after skipped ticks. Per tick 
 
     latched inputs u -> method.step (once per elapsed tick) -> supervise -> out
 
-so replaying the daemon's recorded input gives its outputs exactly: both sides call the same
-kernels in the same order.
+then the consistency monitor (``slipd.estimators.consistency``: the estimate against a
+kinematic witness and a dynamic witness, ``d_ekf``, run on the same inputs; it may clear
+VALID and writes the calibrated sigma_beta), so replaying the daemon's recorded input gives its
+outputs exactly: both sides call the same kernels in the same order. The pipeline's state is one
+float64 vector, [method | witness | monitor], so the daemon's dry runs on a scratch copy leave
+the real one untouched and the persisted slots are the method's.
 
 Time advances by ``dt`` per step, always: a tick that comes after ticks the daemon skipped
 (an overrun) runs ``step`` once per elapsed tick on its inputs (at most
@@ -24,8 +28,12 @@ from collections.abc import Mapping
 import numpy as np
 
 from slipd.channels import N_OUT
-from slipd.estimators import registry
+from slipd.estimators import consistency, registry
 from slipd.estimators.supervision import supervise, supervise_ticks, supervision_plan
+
+#: The dynamic witness of the consistency monitor, and the one of that method itself.
+WITNESS = "d_ekf"
+WITNESS_OF_WITNESS = "linear_kf"
 
 #: The tick interval, s (100 Hz).
 TICK_DT = 0.01
@@ -52,7 +60,9 @@ class Pipeline:
     """One method on one car: load, required channels, wire ID, stepping, supervision."""
 
     def __init__(self, method: str, profile, overrides: Mapping[str, float] | None = None,
-                 dt: float = TICK_DT):
+                 dt: float = TICK_DT, monitor: bool = True):
+        """``monitor`` False: the method and input supervision only (its raw outputs, e.g.
+        to measure what the monitor adds)."""
         self.method = registry.load(method, overrides)
         self.name = method
         self.dt = dt
@@ -64,6 +74,13 @@ class Pipeline:
         self.wire_id = float(self.method.spec.wire_id)
         self.step = self.method.step
         self.params = self.method.params
+        self.monitor = monitor
+        witness = WITNESS_OF_WITNESS if method == WITNESS else WITNESS
+        self.witness = registry.load(witness) if monitor else None
+        self.monitor_params = consistency.default_params(witness == WITNESS_OF_WITNESS)
+        self._method_size = self.method.init(self.vehicle).size
+        self._witness_size = self.witness.init(self.vehicle).size if self.witness else 0
+        self._witness_out = np.full(N_OUT, np.nan)
 
     @property
     def layout(self):
@@ -79,26 +96,73 @@ class Pipeline:
         return {layout.element_names[i]: i for i in layout.indices(self.method.persistent)}
 
     def new_state(self) -> np.ndarray:
-        return self.method.init(self.vehicle)
+        """[method | witness | monitor] (the method's part first: persisted slots index it)."""
+        if not self.monitor:
+            return self.method.init(self.vehicle)
+        parts = [self.method.init(self.vehicle)]
+        if self.witness is not None:
+            parts.append(self.witness.init(self.vehicle))
+        parts.append(consistency.new_state())
+        return np.concatenate(parts)
+
+    def parts(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Views of the method's, the witness's and the monitor's state in ``state``."""
+        m, w = self._method_size, self._method_size + self._witness_size
+        return state[:m], state[m:w], state[w:]
+
+    def consistency_flags(self, state: np.ndarray) -> int:
+        """The monitor's ``consistency.Flag`` bits of the last tick (0 without a monitor)."""
+        if not self.monitor:
+            return 0
+        return int(self.parts(state)[2][consistency.S.LAST_FLAGS])
 
     def tick(self, state: np.ndarray, u: np.ndarray, out: np.ndarray, steps: int = 1) -> None:
         """One tick on latched inputs ``u``: ``steps`` method steps (more than one after
-        skipped ticks, ``catch_up_steps``), then supervision; writes ``out``."""
+        skipped ticks, ``catch_up_steps``), supervision, the consistency monitor; writes
+        ``out``."""
         step, params, vehicle, dt = self.step, self.params, self.vehicle, self.dt
+        if not self.monitor:
+            for _ in range(steps):
+                step(state, u, params, vehicle, dt, out)
+            supervise(u, self.supervision, out)
+            return
+        method_state, witness_state, monitor_state = self.parts(state)
         for _ in range(steps):
-            step(state, u, params, vehicle, dt, out)
+            step(method_state, u, params, vehicle, dt, out)
         supervise(u, self.supervision, out)
+        witness_out = self._witness_out
+        if self.witness is not None:
+            witness_step, witness_params = self.witness.step, self.witness.params
+            for _ in range(steps):
+                witness_step(witness_state, u, witness_params, vehicle, dt, witness_out)
+        consistency.monitor(monitor_state, u, out, witness_out, self.monitor_params, vehicle,
+                            dt * steps)
 
     def run(self, U: np.ndarray, steps: np.ndarray | None = None,
             state: np.ndarray | None = None) -> np.ndarray:
         """Every tick of a recording (``U``: [n, U_LEN] latched inputs) in one numba loop;
         ``steps``: estimator steps per tick (``steps_per_tick``, None = one each). Returns
-        the supervised outputs [n, N_OUT]."""
+        the supervised, monitored outputs [n, N_OUT]."""
         state = self.new_state() if state is None else state
+        method_state, witness_state, monitor_state = self.parts(state) if self.monitor else (
+            state, None, None)
         stepped = U if steps is None else np.repeat(U, steps, axis=0)
+        out = self._run_method(self.method, method_state, stepped, steps)
+        supervise_ticks(U, self.supervision, out)
+        if not self.monitor:
+            return out
+        if self.witness is not None:
+            witness_out = self._run_method(self.witness, witness_state, stepped, steps)
+        else:
+            witness_out = np.full((len(U), N_OUT), np.nan)
+        tick_dt = np.full(len(U), self.dt) if steps is None else self.dt * steps.astype(float)
+        consistency.monitor_ticks(monitor_state, U, out, witness_out, self.monitor_params,
+                                  self.vehicle, tick_dt)
+        return out
+
+    def _run_method(self, method, state, stepped, steps) -> np.ndarray:
         out = np.zeros((len(stepped), N_OUT))
-        self.method.run_ticks(state, stepped, self.params, self.vehicle, self.dt, out)
+        method.run_ticks(state, stepped, method.params, self.vehicle, self.dt, out)
         if steps is not None:  # a tick's output is that of its last step
             out = np.ascontiguousarray(out[np.cumsum(steps) - 1])
-        supervise_ticks(U, self.supervision, out)
         return out

@@ -2,7 +2,9 @@
 
 A frame marked valid must carry a value slipd can vouch for: every required input fresh
 and E2E-checked, the method converged and available, the values finite and inside the range
-the output frame can carry. This kernel is the only place that sets ``Status.VALID``.
+the output frame can carry, and a known sigma_beta (``zero``, which has none, is never VALID).
+This kernel is the only place that sets ``Status.VALID``; the consistency monitor
+(``slipd.estimators.consistency``), which runs after it, may only clear it.
 
 The ranges are the output plan's (slipd.dbc's SLIPD_STATE signals, in SI): a value outside
 them would be sent clamped, so it cannot be valid. They are read from the DBC, never typed
@@ -109,6 +111,7 @@ def supervise(u, plan, out):
                         plan[_LIMITS + Limit.BETA_RATE_MAX])
     ok = ok and _within(out[Out.VX], plan[_LIMITS + Limit.VX_MIN], plan[_LIMITS + Limit.VX_MAX])
     ok = ok and _within(out[Out.VY], plan[_LIMITS + Limit.VY_MIN], plan[_LIMITS + Limit.VY_MAX])
+    ok = ok and math.isfinite(out[Out.SIGMA_BETA])  # an estimate whose error is unknown
     if ok:
         status |= ST_VALID
     out[Out.STATUS] = float(status)

@@ -1,8 +1,9 @@
 """``zero``: beta = 0, vx from the mean of the rear wheel speeds.
 
 Not a paper; the floor every method must beat (a straight-driving assumption costs exactly
-|beta| of error). With a rear wheel invalid, vx is the other one's (0 without either), flagged
-INPUT_TIMEOUT.
+|beta| of error). Its error is unknown, so its sigma_beta is NaN (sent as the signal's
+maximum) and its frames are never VALID (supervision requires a known sigma). With a rear
+wheel invalid, vx is the other one's (0 without either), flagged INPUT_TIMEOUT.
 """
 
 from __future__ import annotations

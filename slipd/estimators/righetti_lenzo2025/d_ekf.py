@@ -55,6 +55,11 @@ def step(state, u, params, vehicle, dt, out):
         return
     if not vx_ok:
         vx_meas = state[S.PREV_VX]  # no wheel: hold the last speed (flagged above)
+    elif vx_meas < params[PARAMS.MIN_SPEED]:
+        # the wheels fell below the model's speed range since the last tick (a stop, or all
+        # wheels locked at speed): eq. 7's slip angles divide by vx, so hold as at start-up
+        rl.hold(state, out, vx_meas, vx_ok, ax, ay, yaw_rate, steer, params, p0_r, 0.0, status)
+        return
     # a posteriori with y = [r, ay] (eq. 9) at tick k's speed
     rl.dynamic_update(
         state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx_meas, steer, vehicle,

@@ -1,0 +1,311 @@
+"""The consistency monitor: whether a method's estimate can be vouched for, and how far.
+
+Input supervision (``supervision.supervise``) checks that the inputs are fresh, the method has
+settled and the values fit the frame; it cannot see an estimate that has drifted. This monitor
+compares every method, every tick, with two independent witnesses that fail in different
+ways (DESIGN.md, "What VALID means"):
+
+* the **kinematic witness**, x_K = [vx_K, vy_K]: the kinematic model (Selmanaj et al. 2017
+  eq. 1, vx' = ax + r vy, vy' = ay - r vx, the IMU moved to the CoG in the plane) integrated
+  from the method's own estimate and pulled back to it with the time constant T
+  (``KIN_TIME_CONSTANT``)::
+
+      vx_K' = ax + r vy_K - (vx_K - vx) / T,    vy_K' = ay - r vx_K - (vy_K - vy) / T
+
+  In steady state vy_K - vy = T (vy' - (ay - r vx)): the method's lateral dynamics against
+  the accelerometer's over the last ~T seconds. It parts from the method when the method's vy
+  moves in a way the IMU does not show (a tyre model saturating in the wrong place, a reset,
+  a jump) or when vx departs from the integral of ax (every wheel locked or spinning: the
+  wheel-based speed is then wrong and so is beta). An ay bias b of the IMU (offset, road bank,
+  the roll's g sin(phi) in a body-frame sensor) moves it by b T: the budget of that error,
+  ``AY_BIAS`` + ``AY_BIAS_PER_AY`` |ay|, sets its scale. Blind to slow drift by construction.
+* the **dynamic witness**: a dynamic single-track filter on the same inputs, ``d_ekf``
+  (Righetti-Lenzo's D-EKF, nonlinear tanh tyre; for ``d_ekf`` itself the linear
+  ``linear_kf``). Free of integration drift, it disagrees with a kinematic method that has
+  integrated a bias for seconds. Its own error is the tyre data's: the rear slip angle that
+  carries the measured ay, alpha_r (from the witness's tyre model inverted at the rear axle's
+  force m a |ay| / l), times the relative uncertainty of the cornering stiffness
+  (``C_REL_UNCERTAINTY``) and of the peak friction (``MU_REL_UNCERTAINTY``) through the slip
+  angle's sensitivity to them at the utilisation x = |ay| / (mu g): for eq. 7's tanh tyre
+  alpha = (mu Fz / C) atanh(x), d ln(alpha) / d ln(C) = -1 and d ln(alpha) / d ln(mu) =
+  1 - x / ((1 - x^2) atanh(x)); the linear witness has no mu and underestimates alpha by
+  atanh(x) / x - 1 there. So sigma_D = alpha_r (C_REL_UNCERTAINTY + the friction or the
+  linear term) + ``WITNESS_FLOOR``. On a road well below the profile's friction the witness
+  does not know it is wrong: a correct kinematic estimate then loses VALID (availability,
+  never honesty, pays), and a dynamic method wrong with it is left to the kinematic witness.
+
+Decision (per tick, after supervision): a disagreement of more than ``N_SIGMA_FAIL`` of its
+scale (either witness, or the speed beyond ``SPEED_TOLERANCE`` + ``SPEED_TOLERANCE_REL`` vx)
+clears VALID and sets DEGRADED, and keeps VALID off until the estimate has been consistent
+(below ``N_SIGMA_WARN``) for ``RECOVERY_TIME``; one above ``N_SIGMA_WARN`` sets DEGRADED only.
+After a failure the kinematic witness stops following the method it failed (for at most
+``FREE_RUN_TIME``): a method whose wheel speeds all read 0 at speed (locked wheels) would
+otherwise pull the witness down to its own wrong speed within T. The speed is checked even
+when the method says the car has stopped (below ``MIN_SPEED``), the beta checks only above.
+
+Calibrated sigma (the frame's SIGMA_BETA): the method's own sigma together with what the
+witnesses say about its error, sigma^2 = sigma_m^2 + ``SIGMA_FLOOR``^2 + sigma_D^2 +
+(d_D / 2)^2 + (d_K / 2)^2 (d_D, d_K the two disagreements in beta): a disagreement d means at
+least one of the two is d off, so 2 sigma >= d keeps the method's error covered when the
+witness is right, and the model-parameter term sigma_D covers the error both dynamic models
+share. ``sigma2_coverage`` in eval measures whether it holds.
+
+The monitor's state is its own float64 vector (``LAYOUT``); ``LAST_FLAGS`` holds the tick's
+``Flag`` bits, which the daemon counts.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+
+import numba as nb
+import numpy as np
+
+from slipd.channels import (
+    ST_DEGRADED,
+    ST_NOT_CONVERGED,
+    ST_RESET,
+    ST_UNAVAILABLE,
+    ST_VALID,
+    VALID,
+    G,
+    In,
+    Out,
+    Veh,
+)
+from slipd.estimators.common.filters import derivative_filter, lowpass
+from slipd.estimators.common.kinematics import translate_to_cog_planar
+from slipd.estimators.common.layout import build_layout
+from slipd.estimators.common.params import build_params
+
+PARAMS, DEFAULTS = build_params(
+    "consistency",
+    # the kinematic witness
+    ("KIN_TIME_CONSTANT", 1.0),  # s, pull of the kinematic witness back to the method
+    ("AY_BIAS", 0.3),  # m/s^2, 1-sigma of an unmodelled ay bias (offset after learning,
+    #                    road bank up to ~2 deg)
+    ("AY_BIAS_PER_AY", 0.03),  # -, and its share of |ay| (g sin(roll) of 1.5-3 deg/g, scale)
+    ("AX_BIAS", 0.5),  # m/s^2, 1-sigma of an unmodelled ax bias (grade up to 5 %, pitch)
+    ("SPEED_TOLERANCE", 1.0),  # m/s, |vx_K - vx| beyond it (and beyond the ax budget) fails
+    ("SPEED_TOLERANCE_REL", 0.05),  # -, plus this share of vx (tyre slip of the wheels)
+    # the dynamic witness (linear_kf)
+    ("C_REL_UNCERTAINTY", 0.3),  # -, cornering stiffness known to 30 % (issue 15's mismatch)
+    ("MU_REL_UNCERTAINTY", 0.2),  # -, peak friction of a dry road known to 20 %
+    ("WITNESS_LINEAR", 0.0),  # 1: the witness is the linear model (no friction, no tanh)
+    ("WITNESS_FLOOR", math.radians(0.2)),  # rad, the witness's error floor (sensor offsets)
+    ("MAX_UTILISATION", 0.98),  # -, atanh(x)/x is taken at most here
+    # decision
+    ("N_SIGMA_FAIL", 3.0),  # disagreement / scale beyond which VALID is cleared
+    ("N_SIGMA_WARN", 2.0),  # beyond which DEGRADED is set
+    ("RECOVERY_TIME", 0.5),  # s below N_SIGMA_WARN before VALID may return
+    ("FREE_RUN_TIME", 5.0),  # s the witness runs unanchored after a failure, at most
+    ("SIGMA_FLOOR", math.radians(0.1)),  # rad, floor of the calibrated sigma
+    ("AY_LOWPASS_TIME_CONSTANT", 0.08),  # s, |ay| of the budgets and the utilisation (2 Hz)
+    ("MIN_SPEED", 3.0),  # m/s, below it beta is undefined: nothing is checked
+    ("YAW_ACC_CUTOFF_HZ", 10.0),  # Hz, derivative filter of the CoG translation
+)  # fmt: skip
+
+
+@enum.unique
+class Flag(enum.IntEnum):
+    """Bits of LAST_FLAGS: what the monitor found this tick."""
+
+    CHECKED = 1  # the monitor ran (method converged, moving)
+    WARN = 2  # a disagreement beyond N_SIGMA_WARN: DEGRADED
+    FAIL = 4  # beyond N_SIGMA_FAIL (or recovering from it): VALID cleared
+    SPEED = 8  # vx departs from the integral of ax
+    KINEMATIC = 16  # the kinematic witness disagrees
+    DYNAMIC = 32  # the dynamic witness disagrees
+
+
+# plain ints for the kernels (numba cannot convert an IntEnum member)
+_CHECKED, _WARN, _FAIL = int(Flag.CHECKED), int(Flag.WARN), int(Flag.FAIL)
+_SPEED, _KINEMATIC, _DYNAMIC = int(Flag.SPEED), int(Flag.KINEMATIC), int(Flag.DYNAMIC)
+
+LAYOUT = build_layout(
+    "consistency",
+    "KIN_VX",  # m/s, kinematic witness
+    "KIN_VY",  # m/s
+    "ANCHORED",  # 1 once the witness follows the method (0: re-anchor at the next check)
+    "AY_LP",  # m/s^2, low-passed CoG ay
+    "D_YAW_RATE",  # derivative filter memory (CoG translation)
+    "RECOVERY",  # s the estimate still has to stay consistent before VALID may return
+    "FREE_RUN",  # s left of running the kinematic witness unanchored (after a failure)
+    "LAST_FLAGS",  # Flag bits of the last tick
+    "KIN_SCORE",  # the last disagreements, in units of their scale (diagnostics)
+    "DYN_SCORE",
+    "SPEED_ERROR",  # m/s, vx_K - vx
+)
+S = LAYOUT.S
+_NOT_RUNNING = ST_NOT_CONVERGED | ST_RESET | ST_UNAVAILABLE
+
+
+def new_state() -> np.ndarray:
+    state = np.zeros(LAYOUT.size, dtype=np.float64)
+    state[S.AY_LP] = np.nan
+    state[S.D_YAW_RATE] = np.nan
+    return state
+
+
+@nb.njit(cache=True, inline="always")
+def _usable(u, ch):
+    return u[VALID + ch] > 0.5 and math.isfinite(u[ch])
+
+
+@nb.njit(cache=True, inline="always")
+def witness_sigma(ay_abs, params, vehicle):
+    """sigma_D of the dynamic witness at |ay| (module docstring), rad."""
+    lf = vehicle[Veh.LF]
+    wheelbase = lf + vehicle[Veh.LR]
+    mu_fz_rear = vehicle[Veh.MU_NOMINAL] * vehicle[Veh.MASS] * G * lf / wheelbase
+    stiffness = vehicle[Veh.CORNERING_STIFFNESS_R]
+    x = ay_abs / (vehicle[Veh.MU_NOMINAL] * G)  # utilisation of either axle (static loads)
+    x_max = params[PARAMS.MAX_UTILISATION]
+    if x > x_max:
+        x = x_max
+    alpha_linear = x * mu_fz_rear / stiffness  # the rear force m a |ay| / l over C_r
+    if x < 1e-6:
+        return params[PARAMS.WITNESS_FLOOR]
+    ratio = math.atanh(x) / x  # the tanh tyre's slip angle over the linear one's
+    if params[PARAMS.WITNESS_LINEAR] > 0.5:
+        alpha, model = alpha_linear, ratio - 1.0
+    else:
+        alpha = alpha_linear * ratio
+        model = params[PARAMS.MU_REL_UNCERTAINTY] * abs(
+            1.0 - x / ((1.0 - x * x) * math.atanh(x)))
+    return alpha * (params[PARAMS.C_REL_UNCERTAINTY] + model) + params[PARAMS.WITNESS_FLOOR]
+
+
+@nb.njit(cache=True)
+def monitor(state, u, out, witness, params, vehicle, dt):
+    """Check ``out`` (the supervised outputs of one tick) against the witnesses; clear VALID
+    and set DEGRADED as the module docstring says, write the calibrated SIGMA_BETA. ``witness``
+    is the dynamic witness's output of the same tick (NaN: none). Allocates nothing."""
+    status = int(out[Out.STATUS])
+    vx = out[Out.VX]
+    vy = out[Out.VY]
+    beta = out[Out.BETA]
+    sigma_m = out[Out.SIGMA_BETA]
+    yaw_rate, yaw_ok = u[In.YAW_RATE], _usable(u, In.YAW_RATE)
+    ax_imu, ax_ok = u[In.AX], _usable(u, In.AX)
+    ay_imu, ay_ok = u[In.AY], _usable(u, In.AY)
+    imu_ok = yaw_ok and ax_ok and ay_ok
+    yaw_acc = derivative_filter(state, S.D_YAW_RATE, yaw_rate if yaw_ok else 0.0, dt,
+                                params[PARAMS.YAW_ACC_CUTOFF_HZ])  # fmt: skip
+    ax, ay = translate_to_cog_planar(ax_imu, ay_imu, yaw_rate, yaw_acc, vehicle[Veh.IMU_X],
+                                     vehicle[Veh.IMU_Y])  # fmt: skip
+    ay_lp = lowpass(state, S.AY_LP, ay if ay_ok else 0.0, dt,
+                    params[PARAMS.AY_LOWPASS_TIME_CONSTANT])  # fmt: skip
+    ay_abs = abs(ay_lp)
+    running = (status & _NOT_RUNNING) == 0 and math.isfinite(vx) and math.isfinite(vy) and (
+        math.isfinite(beta))
+    if not (running and imu_ok):
+        # nothing to check: the method is not estimating (supervision says so) or the IMU is
+        # missing (INPUT_TIMEOUT); the witness re-anchors at the next check
+        state[S.ANCHORED] = 0.0
+        state[S.FREE_RUN] = 0.0
+        state[S.LAST_FLAGS] = 0.0
+        if math.isfinite(sigma_m):
+            out[Out.SIGMA_BETA] = math.sqrt(sigma_m * sigma_m
+                                            + params[PARAMS.SIGMA_FLOOR] ** 2)
+        return
+    if state[S.ANCHORED] < 0.5:
+        state[S.KIN_VX] = vx
+        state[S.KIN_VY] = vy
+        state[S.ANCHORED] = 1.0
+    # the kinematic witness, one forward-Euler step pulled towards the method (not while it
+    # runs free after a failure)
+    t_kin = params[PARAMS.KIN_TIME_CONSTANT]
+    pull = 0.0 if state[S.FREE_RUN] > 0.0 else 1.0 / t_kin
+    kvx = state[S.KIN_VX]
+    kvy = state[S.KIN_VY]
+    state[S.KIN_VX] = kvx + (ax + yaw_rate * kvy - (kvx - vx) * pull) * dt
+    state[S.KIN_VY] = kvy + (ay - yaw_rate * kvx - (kvy - vy) * pull) * dt
+    flags = _CHECKED
+    # speed: beyond the wheel-slip tolerance and what the ax budget integrates in T
+    speed_error = state[S.KIN_VX] - vx
+    speed_scale = (params[PARAMS.SPEED_TOLERANCE] + params[PARAMS.SPEED_TOLERANCE_REL] * vx
+                   + params[PARAMS.AX_BIAS] * t_kin)
+    speed_score = abs(speed_error) / speed_scale
+    moving = vx >= params[PARAMS.MIN_SPEED]
+    # lateral: the witness's vy against the method's, in beta, over its bias budget
+    kin_beta_error = 0.0
+    kin_score = 0.0
+    if moving:
+        kin_beta_error = (state[S.KIN_VY] - vy) / vx
+        kin_scale = (params[PARAMS.AY_BIAS] + params[PARAMS.AY_BIAS_PER_AY] * ay_abs) * (
+            t_kin / vx)
+        kin_score = abs(kin_beta_error) / kin_scale
+    # the dynamic witness, when it runs
+    sigma_d = witness_sigma(ay_abs, params, vehicle)
+    dyn_error = 0.0
+    dyn_score = 0.0
+    w_status = witness[Out.STATUS]
+    if moving and math.isfinite(w_status) and (int(w_status) & _NOT_RUNNING) == 0 and (
+            math.isfinite(witness[Out.BETA])):
+        dyn_error = beta - witness[Out.BETA]
+        dyn_score = abs(dyn_error) / sigma_d
+    n_fail = params[PARAMS.N_SIGMA_FAIL]
+    n_warn = params[PARAMS.N_SIGMA_WARN]
+    worst = max(kin_score, dyn_score)
+    if speed_score > 1.0:
+        flags |= _SPEED | _FAIL
+    if kin_score > n_warn:
+        flags |= _KINEMATIC
+    if dyn_score > n_warn:
+        flags |= _DYNAMIC
+    if worst > n_fail:
+        flags |= _FAIL
+    elif worst > n_warn:
+        flags |= _WARN
+    # a failure holds until the estimate has been consistent for RECOVERY_TIME; the witness
+    # runs free from the first failure until the method agrees with it again
+    consistent = worst <= n_warn and speed_score <= 0.5
+    if flags & _FAIL:
+        state[S.RECOVERY] = params[PARAMS.RECOVERY_TIME]
+        if state[S.FREE_RUN] <= 0.0:
+            state[S.FREE_RUN] = params[PARAMS.FREE_RUN_TIME]
+    elif consistent and state[S.RECOVERY] > 0.0:
+        state[S.RECOVERY] = max(0.0, state[S.RECOVERY] - dt)
+    if consistent:
+        state[S.FREE_RUN] = 0.0
+    elif state[S.FREE_RUN] > 0.0:
+        state[S.FREE_RUN] = max(0.0, state[S.FREE_RUN] - dt)
+    if state[S.RECOVERY] > 0.0:
+        flags |= _FAIL
+    if flags & _FAIL:
+        status = (status & ~ST_VALID) | ST_DEGRADED
+    elif flags & _WARN:
+        status |= ST_DEGRADED
+    out[Out.STATUS] = float(status)
+    # calibrated sigma (an unknown one, zero's, stays unknown)
+    if math.isfinite(sigma_m):
+        sigma2 = params[PARAMS.SIGMA_FLOOR] ** 2 + sigma_d * sigma_d + sigma_m * sigma_m
+        sigma2 += 0.25 * (dyn_error * dyn_error + kin_beta_error * kin_beta_error)
+        out[Out.SIGMA_BETA] = math.sqrt(sigma2)
+    state[S.LAST_FLAGS] = float(flags)
+    state[S.KIN_SCORE] = kin_score
+    state[S.DYN_SCORE] = dyn_score
+    state[S.SPEED_ERROR] = speed_error
+
+
+@nb.njit(cache=True)
+def monitor_ticks(state, U, OUT, WITNESS, params, vehicle, tick_dt):
+    """``monitor`` over a recording: ``tick_dt[k]`` is the time of tick k's steps (dt times
+    its catch-up steps)."""
+    for k in range(U.shape[0]):
+        monitor(state, U[k], OUT[k], WITNESS[k], params, vehicle, tick_dt[k])
+
+
+def default_params(witness_linear: bool = False) -> np.ndarray:
+    """The params vector; ``witness_linear``: the witness is ``linear_kf`` (for d_ekf)."""
+    params = np.empty(len(PARAMS), dtype=np.float64)
+    for field in PARAMS:
+        params[field] = DEFAULTS[field.name.lower()]
+    params[PARAMS.WITNESS_LINEAR] = 1.0 if witness_linear else 0.0
+    return params
+
+
+__all__ = ["DEFAULTS", "Flag", "LAYOUT", "PARAMS", "default_params", "monitor",
+           "monitor_ticks", "new_state", "witness_sigma"]

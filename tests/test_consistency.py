@@ -1,0 +1,241 @@
+"""The consistency monitor (slipd.estimators.consistency): its plain twin, what each witness
+catches, the calibrated sigma, and the VALID rules around it (zero, MU_VALID)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slipd.channels import N_OUT, U_LEN, U_TIME, VALID, In, Out, Status, Veh
+from slipd.estimators import consistency as C
+from slipd.pipeline import Pipeline
+from slipd.profile import load_profile
+
+PROFILE = load_profile("default")
+VEHICLE = PROFILE.vehicle
+P = C.PARAMS
+WHEELS = (In.WHEEL_SPEED_FL, In.WHEEL_SPEED_FR, In.WHEEL_SPEED_RL, In.WHEEL_SPEED_RR)
+NOT_RUNNING = int(Status.NOT_CONVERGED | Status.RESET | Status.UNAVAILABLE)
+
+
+def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
+    """A plain-Python monitor, written from the module docstring (``state``: a dict)."""
+    status = int(out[Out.STATUS])
+    vx, vy, beta, sigma_m = out[Out.VX], out[Out.VY], out[Out.BETA], out[Out.SIGMA_BETA]
+
+    def usable(ch):
+        return u[VALID + ch] > 0.5 and math.isfinite(u[ch])
+
+    r = u[In.YAW_RATE]
+    imu_ok = usable(In.YAW_RATE) and usable(In.AX) and usable(In.AY)
+    wc = 2.0 * math.pi * params[P.YAW_ACC_CUTOFF_HZ]
+    if state["d_yaw"] is None:
+        state["d_yaw"], yaw_acc = r if usable(In.YAW_RATE) else 0.0, 0.0
+    else:
+        signal = r if usable(In.YAW_RATE) else 0.0
+        yaw_acc = wc * (signal - state["d_yaw"])
+        state["d_yaw"] += min(wc * dt, 1.0) * (signal - state["d_yaw"])
+    ax = u[In.AX] + yaw_acc * vehicle[Veh.IMU_Y] + r * r * vehicle[Veh.IMU_X]
+    ay = u[In.AY] - yaw_acc * vehicle[Veh.IMU_X] + r * r * vehicle[Veh.IMU_Y]
+    ay_in = ay if usable(In.AY) else 0.0
+    if state["ay_lp"] is None:
+        state["ay_lp"] = ay_in
+    else:
+        state["ay_lp"] += min(dt / params[P.AY_LOWPASS_TIME_CONSTANT], 1.0) * (
+            ay_in - state["ay_lp"])
+    ay_abs = abs(state["ay_lp"])
+    running = (status & NOT_RUNNING) == 0 and all(math.isfinite(v) for v in (vx, vy, beta))
+    if not (running and imu_ok):
+        state.update(anchored=False, free_run=0.0, flags=0)
+        if math.isfinite(sigma_m):
+            out[Out.SIGMA_BETA] = math.hypot(sigma_m, params[P.SIGMA_FLOOR])
+        return
+    if not state["anchored"]:
+        state.update(kvx=vx, kvy=vy, anchored=True)
+    t = params[P.KIN_TIME_CONSTANT]
+    pull = 0.0 if state["free_run"] > 0.0 else 1.0 / t
+    kvx, kvy = state["kvx"], state["kvy"]
+    state["kvx"] = kvx + (ax + r * kvy - (kvx - vx) * pull) * dt
+    state["kvy"] = kvy + (ay - r * kvx - (kvy - vy) * pull) * dt
+    speed_score = abs(state["kvx"] - vx) / (params[P.SPEED_TOLERANCE]
+                                            + params[P.SPEED_TOLERANCE_REL] * vx
+                                            + params[P.AX_BIAS] * t)
+    moving = vx >= params[P.MIN_SPEED]
+    kin_err = (state["kvy"] - vy) / vx if moving else 0.0
+    kin_score = abs(kin_err) / ((params[P.AY_BIAS] + params[P.AY_BIAS_PER_AY] * ay_abs)
+                                * t / vx) if moving else 0.0
+    # the witness's sigma, from the docstring's formula
+    x = min(ay_abs / (vehicle[Veh.MU_NOMINAL] * 9.81), params[P.MAX_UTILISATION])
+    lf, lr = vehicle[Veh.LF], vehicle[Veh.LR]
+    alpha_lin = x * vehicle[Veh.MU_NOMINAL] * vehicle[Veh.MASS] * 9.81 * lf / (lf + lr) / (
+        vehicle[Veh.CORNERING_STIFFNESS_R])
+    if x < 1e-6:
+        sigma_d = params[P.WITNESS_FLOOR]
+    elif params[P.WITNESS_LINEAR] > 0.5:
+        sigma_d = alpha_lin * (params[P.C_REL_UNCERTAINTY] + math.atanh(x) / x - 1.0) + params[
+            P.WITNESS_FLOOR]
+    else:
+        sensitivity = abs(1.0 - x / ((1.0 - x * x) * math.atanh(x)))
+        sigma_d = alpha_lin * math.atanh(x) / x * (
+            params[P.C_REL_UNCERTAINTY] + params[P.MU_REL_UNCERTAINTY] * sensitivity) + params[
+            P.WITNESS_FLOOR]
+    dyn_err = 0.0
+    if moving and math.isfinite(witness[Out.STATUS]) and not (
+            int(witness[Out.STATUS]) & NOT_RUNNING) and math.isfinite(witness[Out.BETA]):
+        dyn_err = beta - witness[Out.BETA]
+    dyn_score = abs(dyn_err) / sigma_d
+    worst = max(kin_score, dyn_score)
+    fail = speed_score > 1.0 or worst > params[P.N_SIGMA_FAIL]
+    warn = not fail and worst > params[P.N_SIGMA_WARN]
+    consistent = worst <= params[P.N_SIGMA_WARN] and speed_score <= 0.5
+    if fail:
+        state["recovery"] = params[P.RECOVERY_TIME]
+        if state["free_run"] <= 0.0:
+            state["free_run"] = params[P.FREE_RUN_TIME]
+    elif consistent and state["recovery"] > 0.0:
+        state["recovery"] = max(0.0, state["recovery"] - dt)
+    if consistent:
+        state["free_run"] = 0.0
+    elif state["free_run"] > 0.0:
+        state["free_run"] = max(0.0, state["free_run"] - dt)
+    fail = fail or state["recovery"] > 0.0
+    if fail:
+        status = (status & ~int(Status.VALID)) | int(Status.DEGRADED)
+    elif warn:
+        status |= int(Status.DEGRADED)
+    out[Out.STATUS] = float(status)
+    if math.isfinite(sigma_m):
+        out[Out.SIGMA_BETA] = math.sqrt(params[P.SIGMA_FLOOR] ** 2 + sigma_d ** 2 + sigma_m ** 2
+                                        + 0.25 * (dyn_err ** 2 + kin_err ** 2))
+    state["flags"] = (1 | (4 if fail else 0) | (2 if warn else 0))
+
+
+def new_twin_state() -> dict:
+    return dict(d_yaw=None, ay_lp=None, anchored=False, kvx=0.0, kvy=0.0, free_run=0.0,
+                recovery=0.0, flags=0)
+
+
+@pytest.fixture(scope="module")
+def drive():
+    """Latched inputs and supervised kinematic_heuristic/d_ekf outputs of a slalom through the
+    codec."""
+    pytest.importorskip("vehiclemodels")
+    from slipd.replay.candump import Frames
+    from slipd.replay.engine import latch_log
+    from slipd.sim import simulate
+    from slipd.sim.writer import encode_frames
+
+    result = simulate("slalom", duration=12.0, seed=3)
+    t, ids, data, dlc = encode_frames(result, PROFILE)
+    n = len(t)
+    frames = Frames(t, ids, np.zeros(n, np.uint8), dlc.astype(np.uint8), data,
+                    np.zeros(n, np.uint8), ["can0"], "slalom")
+    inputs = latch_log(frames, PROFILE)
+    method = Pipeline("kinematic_heuristic", PROFILE, monitor=False).run(inputs.U)
+    witness = Pipeline("d_ekf", PROFILE, monitor=False).run(inputs.U)
+    return inputs.U, method, witness
+
+
+def _agree(U, method_out, witness_out, params):
+    state = C.new_state()
+    out = method_out.copy()
+    C.monitor_ticks(state, U, out, witness_out, params, VEHICLE, np.full(len(U), 0.01))
+    plain = method_out.copy()
+    tstate = new_twin_state()
+    for k in range(len(U)):
+        twin(tstate, U[k], plain[k], witness_out[k], params, VEHICLE, 0.01)
+    return out, plain
+
+
+@pytest.mark.parametrize("linear", [False, True])
+def test_monitor_kernel_agrees_with_its_plain_twin(drive, linear):
+    U, method_out, witness_out = drive
+    out, plain = _agree(U, method_out, witness_out, C.default_params(linear))
+    np.testing.assert_allclose(out[:, Out.SIGMA_BETA], plain[:, Out.SIGMA_BETA], rtol=1e-12)
+    assert np.array_equal(out[:, Out.STATUS], plain[:, Out.STATUS])
+
+
+def test_an_estimate_that_drifts_loses_valid_and_its_sigma_grows(drive):
+    """A method that integrates a bias (beta ramping 1 deg/s away from the witness's) is
+    DEGRADED and then not VALID within seconds; a consistent one keeps VALID. Its sigma grows
+    with the disagreement, so 2 sigma still covers it."""
+    U, method_out, witness_out = drive
+    good = witness_out.copy()  # the witness itself: consistent by construction
+    good_out, _ = _agree(U, good, witness_out, C.default_params())
+    valid_good = (good_out[:, Out.STATUS].astype(int) & Status.VALID) != 0
+    assert valid_good[300:].mean() > 0.95
+    drifting = good.copy()
+    ramp = np.radians(1.0) * np.clip(np.arange(len(U)) - 300, 0, None) * 0.01
+    drifting[:, Out.BETA] += ramp
+    drifting[:, Out.VY] = drifting[:, Out.VX] * np.tan(drifting[:, Out.BETA])
+    out, _ = _agree(U, drifting, witness_out, C.default_params())
+    valid = (out[:, Out.STATUS].astype(int) & Status.VALID) != 0
+    off = np.degrees(ramp) > 3.0
+    assert off.any() and not valid[off].any(), "VALID while 3+ deg off the witness"
+    assert np.all(2 * out[off, Out.SIGMA_BETA] >= ramp[off] * 0.99)
+
+
+def test_a_jump_the_imu_does_not_show_fails_the_kinematic_check(drive):
+    """A method whose vy jumps by 2 m/s in one tick (a reset to a wrong value, a saturating
+    tyre model) disagrees with the accelerometer: the kinematic witness fails it, even with no
+    dynamic witness at all."""
+    U, method_out, witness_out = drive
+    jumped = witness_out.copy()
+    jumped[600:, Out.VY] += 2.0
+    jumped[600:, Out.BETA] = np.arctan2(jumped[600:, Out.VY], jumped[600:, Out.VX])
+    none = np.full_like(witness_out, np.nan)
+    out, _ = _agree(U, jumped, none, C.default_params())
+    valid = (out[:, Out.STATUS].astype(int) & Status.VALID) != 0
+    assert valid[550:600].all() and not valid[601:650].any()
+
+
+def test_zero_is_never_valid_and_sends_an_unknown_sigma():
+    from slipd.codec.plan import Tx
+    from slipd.codec.tx import UNKNOWN_SIGMA, fill_tx
+
+    U = np.zeros((300, U_LEN))
+    for ch in (In.AX, In.AY, In.YAW_RATE, In.STEER, *WHEELS):
+        U[:, VALID + ch] = 1.0
+    U[:, U_TIME] = np.arange(300) * 0.01
+    U[:, list(WHEELS)] = 20.0
+    out = Pipeline("zero", PROFILE).run(U)
+    assert not np.any(out[:, Out.STATUS].astype(int) & Status.VALID)
+    tx = np.zeros(len(Tx))
+    fill_tx(out[-1], 0.0, tx)
+    assert tx[Tx.SIGMA_BETA] == UNKNOWN_SIGMA
+
+
+def test_mu_valid_only_on_a_valid_frame_with_a_friction_estimate():
+    from slipd.codec.plan import Tx
+    from slipd.codec.tx import fill_tx
+
+    out = np.zeros(N_OUT)
+    tx = np.zeros(len(Tx))
+    out[Out.MU] = 0.8
+    out[Out.STATUS] = float(Status.VALID)
+    fill_tx(out, 0.0, tx)
+    assert tx[Tx.MU_VALID] == 1.0
+    for status in (Status.NOT_CONVERGED, Status.INPUT_TIMEOUT | Status.DEGRADED, 0):
+        out[Out.STATUS] = float(status)
+        fill_tx(out, 0.0, tx)
+        assert tx[Tx.MU_VALID] == 0.0, status
+    out[Out.STATUS], out[Out.MU] = float(Status.VALID), math.nan
+    fill_tx(out, 0.0, tx)
+    assert tx[Tx.MU_VALID] == 0.0
+
+
+def test_the_daemon_path_and_the_batch_path_give_the_same_monitored_outputs(drive):
+    """Pipeline.tick per tick (the daemon) equals Pipeline.run (replay), monitor included."""
+    U = drive[0]
+    for name in ("kinematic_heuristic", "d_ekf"):
+        pipeline = Pipeline(name, PROFILE)
+        batch = pipeline.run(U)
+        state = pipeline.new_state()
+        out = np.zeros(N_OUT)
+        ticks = np.zeros_like(batch)
+        for k in range(len(U)):
+            pipeline.tick(state, U[k], out)
+            ticks[k] = out
+        np.testing.assert_array_equal(ticks, batch)
