@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from slipd.channels import VALID, In, Out, new_u
+from slipd.channels import ST_DEGRADED, ST_VALID, VALID, In, Out, new_u
 from slipd.codec import Codec
 from slipd.codec.plan import load_dbc
 from slipd.profile import load_profile
@@ -146,7 +146,15 @@ def test_a_drive_on_the_cars_bus_estimates_as_on_slipd_dbc(tmp_path, name):
     error = np.degrees(got[:, Out.BETA] - want[:, Out.BETA])
     assert np.nanmax(np.abs(np.degrees(want[:, Out.BETA]))) > 2.0  # a real manoeuvre
     assert np.sqrt(np.nanmean(error**2)) < 0.1 and np.nanmax(np.abs(error)) < 0.3
-    assert np.array_equal(got[:, Out.STATUS], want[:, Out.STATUS])
+    # the input bits exactly; the consistency monitor's verdicts (VALID, DEGRADED) may differ
+    # only where the estimate sits on one of its thresholds (the values differ by the buses'
+    # resolution), each flip held for the monitor's recovery time
+    inputs = ~np.uint32(ST_VALID | ST_DEGRADED)
+    got_status, want_status = got[:, Out.STATUS].astype(np.uint32), want[:, Out.STATUS].astype(
+        np.uint32)
+    assert np.array_equal(got_status & inputs, want_status & inputs)
+    assert np.mean(got_status != want_status) < 0.08
+    assert abs(np.mean(got_status & ST_VALID > 0) - np.mean(want_status & ST_VALID > 0)) < 0.05
     if name == "hyundai_ioniq_5":  # the log is CAN FD end to end
         assert "##" in log.read_text().splitlines()[0]
     # the same bus read without its sign bit turns every right turn into a left turn
