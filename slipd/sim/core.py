@@ -279,7 +279,8 @@ def sense(
     overrides = {**variant_overrides, **(sensor or {})}
     cfg = _sensor_config(plan, profile, overrides)
     rng = np.random.default_rng(seed)
-    channels = sensor_channels(out, p, cfg, rng, heading0=plan.heading0)
+    drawn: dict = {}
+    channels = sensor_channels(out, p, cfg, rng, heading0=plan.heading0, record=drawn)
     specs = message_specs(profile)
     sensors = sample_messages(
         out.t, channels, specs, rng,
@@ -289,7 +290,7 @@ def sense(
     return SimResult(
         scenario=scenario, vehicle=vehicle, seed=seed, truth=truth(out, p), sensors=sensors,
         meta={"sensor_config": cfg, "extra_mass": plan.extra_mass, "variant": variant_name,
-              "sensor_overrides": overrides},
+              "sensor_overrides": overrides, "sensor_errors": drawn},
     )
 
 

@@ -150,6 +150,9 @@ class SensorConfig:
     # Fixed steering-wheel angle offset (rad at the steering wheel), on top of the random
     # ``swa_offset`` draw.
     swa_bias: float = 0.0
+    # Fixed relative rolling-radius errors of the wheels (fl, fr, rl, rr: the speed signal reads
+    # (1 + error) x the true speed), on top of the random ``wheel_radius_error`` draw.
+    wheel_radius_bias: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         from slipd.errors import ConfigError
@@ -173,7 +176,7 @@ class SensorConfig:
             raise ConfigError(f"sensor setting wheel_edge_timeout={self.wheel_edge_timeout!r}: "
                               "expected > 0 s")
         for name, size in (("imu_mounting", 3), ("vibration_accel", 3), ("vibration_gyro", 3),
-                           ("vibration_shares", 4)):
+                           ("vibration_shares", 4), ("wheel_radius_bias", 4)):
             value = getattr(self, name)
             if np.shape(value) != (size,):
                 raise ConfigError(f"sensor setting {name}={value!r}: expected {size} numbers")
@@ -349,7 +352,7 @@ def level_acceleration(out: PlantOutput, f_imu: np.ndarray) -> np.ndarray:
 
 def sensor_channels(
     out: PlantOutput, p, cfg: SensorConfig, rng: np.random.Generator, heading0: float = 0.0,
-    aux_rng: np.random.Generator | None = None,
+    aux_rng: np.random.Generator | None = None, record: dict | None = None,
 ) -> dict[In, np.ndarray]:
     """Every input channel on the plant grid, as the sensors report it (before quantisation).
 
@@ -357,6 +360,11 @@ def sensor_channels(
     (vibration, tone-wheel phases) draw from ``aux_rng`` (default: a child spawned from
     ``rng``, which leaves ``rng``'s own stream untouched), so switching them on never changes
     the baseline's draws: a variant differs from its baseline only by its own effect.
+    ``record``, when given, receives the errors drawn (the truth of slipd identify's sensor
+    errors, in its conventions): ``imu_mounting`` (roll, pitch, yaw, rad), ``accel_offset``
+    (m/s^2) and ``gyro_offset`` (roll, pitch, yaw rate, rad/s) as the turn-on offset plus the
+    drift's mean over the run, ``wheel_radius_error`` (fl, fr, rl, rr) and ``swa_offset``
+    (rad at the steering wheel).
     """
     t = out.t
     n = len(t)
@@ -388,15 +396,18 @@ def sensor_channels(
                                           tuple(cfg.vibration_shares))
     accel_bias = rng.normal(0.0, cfg.accel_bias, 3) + np.asarray(cfg.accel_offset)
     gyro_bias = rng.normal(0.0, cfg.gyro_bias, 3) + np.asarray(cfg.gyro_offset)
+    accel_mean, gyro_mean = accel_bias.copy(), gyro_bias.copy()
     for i, channel in enumerate((In.AX, In.AY, In.AZ)):
         drift = _gauss_markov(rng, n, dt, cfg.bias_tau, cfg.accel_drift)
+        accel_mean[i] += float(drift.mean()) if n else 0.0
         ch[channel] = f_imu[:, i] + accel_bias[i] + drift + rng.normal(0.0, cfg.accel_noise, n)
     for i, channel in enumerate((In.ROLL_RATE, In.PITCH_RATE, In.YAW_RATE)):
         drift = _gauss_markov(rng, n, dt, cfg.bias_tau, cfg.gyro_drift)
+        gyro_mean[i] += float(drift.mean()) if n else 0.0
         ch[channel] = omega_imu[:, i] + gyro_bias[i] + drift + rng.normal(0.0, cfg.gyro_noise, n)
 
     # --- wheel speeds (omega * dynamic radius, unsigned) -------------------------------------
-    radius_error = rng.normal(0.0, cfg.wheel_radius_error, 4)
+    radius_error = rng.normal(0.0, cfg.wheel_radius_error, 4) + np.asarray(cfg.wheel_radius_bias)
     if cfg.wheel_teeth:
         from slipd.sim.tone_wheel import tone_wheel_speed
 
@@ -419,6 +430,12 @@ def sensor_channels(
     ratio = cfg.steer_ratio
     swa_offset = rng.normal(0.0, cfg.swa_offset) + cfg.swa_bias
     swa = out.x[:, STEER] * ratio + swa_offset + rng.normal(0.0, cfg.swa_noise, n)
+    if record is not None:
+        record.update(imu_mounting=tuple(float(v) for v in mis),
+                      accel_offset=tuple(float(v) for v in accel_mean),
+                      gyro_offset=tuple(float(v) for v in gyro_mean),
+                      wheel_radius_error=tuple(float(v) for v in radius_error),
+                      swa_offset=float(swa_offset))
     ch[In.STEER] = swa / ratio
     ch[In.STEER_RATE] = (out.dx[:, STEER] * ratio + rng.normal(0.0, cfg.swa_rate_noise, n)) / ratio
 

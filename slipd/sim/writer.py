@@ -56,7 +56,31 @@ def _sensor_lines(result: SimResult) -> list[str]:
     if overrides:
         lines.append("# sensor overrides: " + " ".join(
             f"{key}={format_value(value)}" for key, value in sorted(overrides.items())))
+    # the drawn errors (the truth of slipd identify) too, but not for the baseline, whose
+    # header stays byte for byte as it was
+    errors = sensor_errors_as_calibration(result.meta.get("sensor_errors") or {})
+    if errors and (name or overrides):
+        lines.append("# sensor errors (profile [calibration] conventions): " + " ".join(
+            f"{key}={','.join(f'{v:.6g}' for v in np.atleast_1d(value))}"
+            for key, value in errors.items()))
     return lines
+
+
+def sensor_errors_as_calibration(drawn: dict) -> dict[str, tuple[float, ...]]:
+    """The sensor errors a simulation drew (SimResult.meta['sensor_errors']) as the values of a
+    profile's ``[calibration]`` table that undo them (slipd.profile.Calibration): the truth
+    of slipd identify. {} when nothing was recorded."""
+    if not drawn:
+        return {}
+    deg = np.degrees
+    return {
+        "imu_mounting_deg": tuple(float(v) for v in deg(drawn["imu_mounting"])),
+        "accel_offset": tuple(float(v) for v in drawn["accel_offset"]),
+        "gyro_offset": tuple(float(v) for v in deg(drawn["gyro_offset"])),
+        "steer_offset_deg": (float(deg(drawn["swa_offset"])),),
+        # the signal reads (1 + e) x the true speed; the scale undoes it
+        "wheel_radius_scale": tuple(1.0 / (1.0 + float(e)) for e in drawn["wheel_radius_error"]),
+    }
 
 
 def read_truth_meta(path: str | Path) -> dict[str, str]:
@@ -76,6 +100,8 @@ def read_truth_meta(path: str | Path) -> dict[str, str]:
                 meta["variant"] = text.split(":", 1)[1].split("(", 1)[0].strip()
             elif text.startswith("sensor overrides:"):
                 meta["sensor_overrides"] = text.split(":", 1)[1].strip()
+            elif text.startswith("sensor errors"):
+                meta["sensor_errors"] = text.split(":", 1)[1].strip()
     return meta
 
 
