@@ -53,8 +53,9 @@ def main() -> None:
         U = np.zeros((1, U_LEN))
         started = time.perf_counter()
         kernels.latch_ticks(p.plan_i, p.plan_f, p.lookup, p.timeouts, codec.channel_timeouts,
-                            t, np.zeros(n, np.int64), ids, flags, dlc, data, np.array([t[-1]]),
-                            np.array([n], np.int64), state.latch, state.msg_state,
+                            codec.calibration, t, np.zeros(n, np.int64), ids, flags, dlc,
+                            data, np.array([t[-1]]), np.array([n], np.int64), state.latch,
+                            state.msg_state,
                             state.errors, U)
         elapsed = time.perf_counter() - started
         assert state.errors[:, kernels.ERR_ACCEPTED].sum() == n, "every frame must pass"

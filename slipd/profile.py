@@ -137,6 +137,15 @@ TYRE_KEYS: dict[str, Veh] = {
 }
 #: Parameters that must be strictly positive.
 POSITIVE = set(VEHICLE_KEYS) | set(TYRE_KEYS) - {"pacejka_e"}
+#: [calibration] keys -> (length, limit of |value| (or of |value - 1| for the scales), unit).
+#: Beyond a limit the value is a fault of the sensor or the mapping, not an offset.
+CALIBRATION_KEYS: dict[str, tuple[int, float, str]] = {
+    "imu_mounting_deg": (3, 15.0, "deg"),
+    "accel_offset": (3, 3.0, "m/s^2"),
+    "gyro_offset": (3, 10.0, "deg/s"),
+    "steer_offset_deg": (1, 90.0, "deg"),
+    "wheel_radius_scale": (4, 0.2, "relative"),
+}
 
 
 @dataclass(frozen=True)
@@ -168,6 +177,7 @@ class ChannelMap:
     signals: tuple[SignalMap, ...]
     timeout: float  # s; older values are invalid at a tick
     required: bool
+    divide_by: str = ""  # the [vehicle] key the value is divided by ("" none)
 
 
 @dataclass(frozen=True)
@@ -199,6 +209,36 @@ class OutputMap:
 
 
 @dataclass(frozen=True)
+class Calibration:
+    """The car's sensor errors (the profile's ``[calibration]`` table, slipd identify's output),
+    corrected where the codec samples the latch (slipd.codec.calibration), so the daemon and
+    the replay see the same corrected inputs. Each offset is what its sensor reads when the
+    true value is zero (ISO 8855 axes, sensor axes for the IMU) and is subtracted.
+
+    ``imu_mounting_deg``: the IMU's axes as the body axes rotated by roll, pitch, yaw
+    (R = Rz(yaw) Ry(pitch) Rx(roll); a sensor reads R^T v of a body vector v).
+    ``accel_offset`` (m/s^2, ax ay az) and ``gyro_offset`` (deg/s, roll pitch yaw rate).
+    ``steer_offset_deg``: of the steer signal's own angle, at the steering wheel where the
+    channel divides by ``steering_ratio`` (``steer_divisor``, from the channel map).
+    ``wheel_radius_scale``: each wheel's rolling radius relative to the one its speed signal
+    assumes (fl, fr, rl, rr); true speed = signal x scale."""
+
+    imu_mounting_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    accel_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gyro_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    steer_offset_deg: float = 0.0
+    wheel_radius_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    steer_divisor: float = 1.0  # not a key: steering_ratio when the steer channel divides by it
+
+    @property
+    def is_identity(self) -> bool:
+        """No correction at all (the codec then leaves every input untouched)."""
+        return (not any(self.imu_mounting_deg) and not any(self.accel_offset)
+                and not any(self.gyro_offset) and self.steer_offset_deg == 0.0
+                and all(s == 1.0 for s in self.wheel_radius_scale))
+
+
+@dataclass(frozen=True)
 class Profile:
     path: Path
     name: str
@@ -209,6 +249,7 @@ class Profile:
     description: str = ""
     extra: dict = field(default_factory=dict)
     outputs: OutputMap = field(default_factory=OutputMap)
+    calibration: Calibration = field(default_factory=Calibration)
 
     @property
     def input_messages(self) -> list[MessageMap]:
@@ -416,7 +457,7 @@ def _parse_channel(path: Path, name: str, spec: dict, vehicle: np.ndarray, messa
                   valid_values or (), invalid_values, unit)
         for s in signal_names
     )
-    return ChannelMap(channel, message, signals, timeout, required)
+    return ChannelMap(channel, message, signals, timeout, required, divide_by)
 
 
 def _parse_message(path: Path, name: str, spec: dict) -> MessageMap:
@@ -497,6 +538,38 @@ def _parse_outputs(path: Path, table) -> OutputMap:
     return OutputMap(frame_ids, extended, bus, fd, listen_only)
 
 
+def _parse_calibration(path: Path, table, channels: dict[In, ChannelMap],
+                       vehicle: np.ndarray) -> Calibration:
+    """[calibration]: the sensor errors slipd identify finds (all optional, identity default)."""
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: [calibration] = {table!r}; expected a table")
+    reader = _Reader(path, table, "calibration")
+    values: dict = {}
+    for key, (length, limit, unit) in CALIBRATION_KEYS.items():
+        scale = key == "wheel_radius_scale"
+        if length == 1:
+            value = reader.number(key, None, maximum=limit)
+            if value is not None:
+                values[key] = value
+            continue
+        what = (f"{length} numbers ({unit}), each within {limit:g} of 1" if scale else
+                f"{length} numbers ({unit}), each within +-{limit:g}")
+        items = reader.get(key, list, None, what=what)
+        if items is None:
+            continue
+        if len(items) != length or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                and abs(v - (1.0 if scale else 0.0)) <= limit for v in items):
+            raise ConfigError(f"{reader.where(key)} = {items!r}; expected {what}")
+        values[key] = tuple(float(v) for v in items)
+    reader.no_unknown()
+    steer = channels.get(In.STEER)
+    divisor = 1.0
+    if steer is not None and steer.divide_by == "steering_ratio":
+        divisor = float(vehicle[Veh.STEER_RATIO])
+    return Calibration(**values, steer_divisor=divisor)
+
+
 def load_profile(name_or_path: str | Path = "default", edit=None,
                  check_dbc: bool = True) -> Profile:
     """Load and validate a vehicle profile (a shipped name or a TOML path).
@@ -566,9 +639,11 @@ def load_profile(name_or_path: str | Path = "default", edit=None,
         raise ConfigError(f"{path}: the accelerometer channels' messages declare different "
                           f"frames {sorted(frames)}; ax, ay and az must share one")
     outputs = _parse_outputs(path, top.get("outputs", dict, {}, what="an [outputs] table"))
+    calibration = _parse_calibration(
+        path, top.get("calibration", dict, {}, what="a [calibration] table"), channels, vehicle)
     top.no_unknown()
     profile = Profile(path, name, dbc_path, vehicle, channels, messages, description,
-                      outputs=outputs)
+                      outputs=outputs, calibration=calibration)
     if check_dbc:
         from slipd.codec.plan import check_profile
 

@@ -12,8 +12,9 @@ from hypothesis import strategies as st
 
 from slipd.channels import VALID, In, new_u
 from slipd.codec import Codec, Tx, e2e, kernels
+from slipd.codec.calibration import calibration_vector
 from slipd.codec.plan import OUTPUT_MESSAGES, compile_input_plan, compile_output_plan
-from slipd.profile import load_profile
+from slipd.profile import Calibration, load_profile
 
 DEFAULT = load_profile("default")
 TOYOTA = load_profile("toyota_prius")
@@ -331,7 +332,7 @@ def test_value_table_codes_mark_a_value_not_available(tmp_path):
                                    payload, t, plan.timeouts, state.latch, state.msg_state,
                                    state.errors, state.scratch)
         timeouts = np.full(len(u) // 2, 1.0)
-        kernels.sample_latch(state.latch, timeouts, t, u)
+        kernels.sample_latch(state.latch, timeouts, calibration_vector(Calibration()), t, u)
         return got
 
     assert decode(1000, 0.0) == 0 and u[VALID + In.YAW_RATE] == 1.0

@@ -13,6 +13,7 @@ import numpy as np
 
 from slipd.channels import N_IN, In
 from slipd.codec import kernels
+from slipd.codec.calibration import calibration_vector
 from slipd.codec.kernels import ERROR_NAMES, N_ERR
 from slipd.codec.plan import (
     N_TX,
@@ -56,6 +57,8 @@ class Codec:
         self.inputs: Plan = compile_input_plan(profile)
         self.outputs: Plan = compile_output_plan(outputs=profile.outputs)
         self.channel_timeouts = channel_timeouts(profile)
+        #: the profile's [calibration] in the sampling kernel's form (slipd.codec.calibration)
+        self.calibration = calibration_vector(profile.calibration)
         self.state = DecodeState.new(self.inputs.n_messages)
         self._tx_counters = dict.fromkeys(self.outputs.message_names, 0)
         self._input_counters = dict.fromkeys(self.inputs.message_names, 0)
@@ -93,7 +96,7 @@ class Codec:
 
     def sample(self, t: float, u: np.ndarray) -> np.ndarray:
         """Sample-and-hold of the latch at tick time ``t`` into ``u`` (see channels.U_LEN)."""
-        kernels.sample_latch(self.state.latch, self.channel_timeouts, t, u)
+        kernels.sample_latch(self.state.latch, self.channel_timeouts, self.calibration, t, u)
         return u
 
     def error_counts(self) -> dict[str, dict[str, int]]:

@@ -34,6 +34,7 @@ import math
 import numba as nb
 import numpy as np
 
+from slipd.codec.calibration import calibrate
 from slipd.codec.e2e import CRC8_H2F, CRC8_SAE_J1850, CRC16_XMODEM, HKG_CANFD_XOR
 
 MAX_PAYLOAD = 64  # bytes: CAN FD
@@ -419,10 +420,12 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
 
 
 @nb.njit(cache=True)
-def sample_latch(latch, channel_timeouts, t, u):
+def sample_latch(latch, channel_timeouts, calibration, t, u):
     """Sample-and-hold of the latch at tick time ``t`` into the input vector ``u``.
 
     A channel is valid when it has been set and its newest value is at most its timeout old.
+    Last, the profile's sensor-error corrections (``calibration``, float64 [CAL_LEN], see
+    slipd.codec.calibration; inactive without a [calibration] table).
     """
     n_in = latch.shape[1]
     for ch in range(n_in):
@@ -431,12 +434,13 @@ def sample_latch(latch, channel_timeouts, t, u):
         u[ch] = latch[LATCH_VALUE, ch]
         u[n_in + ch] = 1.0 if valid else 0.0
     u[2 * n_in] = t
+    calibrate(calibration, u)
 
 
 @nb.njit(cache=True)
-def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, frame_time, frame_bus,
-                frame_id, frame_flags, frame_dlc, frame_data, tick_time, tick_until, latch,
-                msg_state, errors, U):
+def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, calibration, frame_time,
+                frame_bus, frame_id, frame_flags, frame_dlc, frame_data, tick_time, tick_until,
+                latch, msg_state, errors, U):
     """The batch engine's front half: decode frames in log order and sample at every tick.
 
     Frames ``[.., tick_until[k])`` are applied before tick ``k`` is sampled at ``tick_time[k]``
@@ -456,7 +460,7 @@ def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, frame_time, 
                              (flags & 1) != 0, frame_dlc[i], frame_data[i], frame_time[i],
                              timeouts, latch, msg_state, errors, scratch)
             i += 1
-        sample_latch(latch, channel_timeouts, tick_time[k], U[k])
+        sample_latch(latch, channel_timeouts, calibration, tick_time[k], U[k])
     return i
 
 

@@ -153,8 +153,9 @@ def latch_log(frames: Frames, profile: Profile, tick_time: np.ndarray | None = N
         frames.data, ((0, 0), (0, width - frames.data.shape[1])))
     buses = frame_buses(frames, codec, bus_map)
     kernels.latch_ticks(p.plan_i, p.plan_f, p.lookup, p.timeouts, codec.channel_timeouts,
-                        frames.t, buses, frames.frame_id, frames.flags, frames.dlc.astype(np.int64),
-                        data, ticks, tick_until, s.latch, s.msg_state, s.errors, U)
+                        codec.calibration, frames.t, buses, frames.frame_id, frames.flags,
+                        frames.dlc.astype(np.int64), data, ticks, tick_until, s.latch,
+                        s.msg_state, s.errors, U)
     return Inputs(ticks, U, codec.error_counts(), len(frames))
 
 
