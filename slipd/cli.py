@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                 "one on a real log (check)"),
     "decode": ("slipd.commands.decode", "decode a log into slipd's SI input channels per tick "
                "(CSV or Parquet)"),
+    "identify": ("slipd.commands.identify", "identify the car's parameters and sensor errors "
+                 "from ordinary drives into a profile copy"),
 }
 
 
