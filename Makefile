@@ -47,6 +47,7 @@ bench: setup
 	$(BIN)/python -m benchmarks.estimators
 	$(BIN)/python -m benchmarks.formats
 	$(BIN)/python -m benchmarks.sim_variants
+	$(BIN)/python -m benchmarks.identify
 	$(BIN)/python -m benchmarks.daemon_latency
 
 clean:
