@@ -164,3 +164,17 @@ def test_the_single_track_kernel_and_its_plain_twin_agree():
     simulate_segments_plain(params, delta, lateral, vx, starts, stops, outs[2], outs[3])
     np.testing.assert_allclose(outs[0], outs[2], rtol=0, atol=1e-12)
     np.testing.assert_allclose(outs[1], outs[3], rtol=0, atol=1e-12)
+
+
+def test_the_report_writes_the_summary_and_every_figure(drives, tmp_path):
+    from slipd.identify.report import write_report
+
+    _, _, _, out = drives
+    files = write_report(out[SEEDS[0]][2], tmp_path / "report", ["extra line"])
+    names = {f.name for f in files}
+    assert names == {"summary.txt", "handling_diagram.png", "fit_residuals.png", "offsets.png",
+                     "roll_gradient.png"}
+    for f in files:
+        assert f.stat().st_size > 1000, f
+    summary = (tmp_path / "report" / "summary.txt").read_text()
+    assert "understeer gradient (handling diagram)" in summary and "extra line" in summary

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from slipd.errors import DependencyError
+from slipd.eval.plots import save
 from slipd.identify import QUANTITIES, Identification
 from slipd.identify.data import DT
 from slipd.identify.profile_text import UNITS, interval_text, rounded
@@ -75,6 +77,15 @@ def summary_lines(result: Identification) -> list[str]:
     return lines
 
 
+def _figure(**kwargs):
+    """A pyplot-free figure (headless, as slipd.eval.plots draws)."""
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as exc:
+        raise DependencyError("--report needs matplotlib: pip install 'slipd[plot]'") from exc
+    return Figure(layout="constrained", **kwargs)
+
+
 def _drive_offsets(result: Identification) -> list[float]:
     """Start of each drive on one time axis (the drives one after another), s."""
     offsets, total = [], 0.0
@@ -85,11 +96,6 @@ def _drive_offsets(result: Identification) -> list[float]:
 
 
 def plot_handling(result: Identification, path: Path) -> bool:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     diag = result.outcome.diagnostics.get("handling")
     if diag is None:
         return False
@@ -101,7 +107,8 @@ def plot_handling(result: Identification, path: Path) -> bool:
     speed = np.sqrt(np.abs(speed))
     step = max(1, len(kin) // 6000)
     road = (delta - intercept) / gain  # the road-wheel angle with the identified ratio, offset
-    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 5))
+    fig = _figure(figsize=(12, 5))
+    left, right = fig.subplots(1, 2)
     sc = left.scatter(np.degrees(kin[::step]), np.degrees(road[::step]), s=2, c=speed[::step],
                       cmap="viridis")
     lim = np.nanpercentile(np.abs(np.degrees(kin)), 99.5)
@@ -124,25 +131,19 @@ def plot_handling(result: Identification, path: Path) -> bool:
     right.legend(loc="upper left")
     right.set_ylim(np.nanpercentile(np.degrees(excess), [0.5, 99.5]) * 1.5)
     fig.suptitle("quasi-steady ticks in the linear range")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
     return True
 
 
 def plot_residuals(result: Identification, path: Path) -> bool:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     diag = result.outcome.diagnostics.get("single_track")
     if diag is None:
         return False
     data = diag["data"]
     r_model, ay_model = diag["r_model"], diag["ay_model"]
     offsets = _drive_offsets(result)
-    fig, axes = plt.subplots(3, 1, figsize=(12, 9))
+    fig = _figure(figsize=(12, 9))
+    axes = fig.subplots(3, 1)
     rms = []
     for j, piece in enumerate(data.pieces):
         a, b = data.starts[j], data.stops[j]
@@ -167,18 +168,11 @@ def plot_residuals(result: Identification, path: Path) -> bool:
     axes[2].set_xlabel("time in the segment [s]")
     axes[2].set_title("the most excited segment")
     axes[2].legend(loc="upper right", fontsize=8, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
     return True
 
 
 def plot_offsets(result: Identification, path: Path) -> bool:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from slipd.channels import In
     from slipd.identify.imu import ACCEL, GYRO, _channel
 
@@ -188,7 +182,8 @@ def plot_offsets(result: Identification, path: Path) -> bool:
     if not stops and units is None:
         return False
     offsets = _drive_offsets(result)
-    fig, axes = plt.subplots(3, 1, figsize=(12, 9), sharex=True)
+    fig = _figure(figsize=(12, 9))
+    axes = fig.subplots(3, 1, sharex=True)
     findings = result.outcome.findings
     for ax, channels, key, scale, unit in (
             (axes[0], GYRO, "calibration.gyro_offset", 180.0 / math.pi, "deg/s"),
@@ -226,18 +221,11 @@ def plot_offsets(result: Identification, path: Path) -> bool:
                           "identified rolling radii")
         axes[2].legend(loc="upper right", fontsize=8, ncol=4)
     axes[2].set_xlabel("drive time [s] (logs one after another)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
     return True
 
 
 def plot_roll(result: Identification, path: Path) -> bool:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     diag = result.outcome.diagnostics.get("roll")
     if diag is None:
         return False
@@ -246,7 +234,8 @@ def plot_roll(result: Identification, path: Path) -> bool:
     phi = np.concatenate([p[3] for p in diag["pieces"]])
     force = np.concatenate([p[4] for p in diag["pieces"]]) - G * phi
     step = max(1, len(phi) // 8000)
-    fig, ax = plt.subplots(figsize=(7, 5))
+    fig = _figure(figsize=(7, 5))
+    ax = fig.subplots()
     ax.plot(force[::step], np.degrees(phi[::step]), ".", ms=1, alpha=0.5)
     xs = np.linspace(force.min(), force.max(), 10)
     ax.plot(xs, np.degrees(diag["c"] * xs), "r-",
@@ -255,9 +244,7 @@ def plot_roll(result: Identification, path: Path) -> bool:
     ax.set_ylabel("roll (roll rate integrated), band-passed [deg]")
     ax.set_title("roll gradient")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
     return True
 
 
