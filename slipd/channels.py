@@ -131,6 +131,8 @@ class Veh(enum.IntEnum):
     TYRE_B = 21  # Pacejka magic formula coefficients of the lateral force (one set for all)
     TYRE_C = 22
     TYRE_E = 23
+    ACCEL_LEVEL = 24  # 1: the accelerometers are levelled, gravity removed (an INS; the
+    # profile's IMU message frame = "level"), 0: body frame (ESC units)
 
 
 N_VEH = len(Veh)

@@ -638,6 +638,7 @@ def load_profile(name_or_path: str | Path = "default", edit=None,
     if len(frames) > 1:
         raise ConfigError(f"{path}: the accelerometer channels' messages declare different "
                           f"frames {sorted(frames)}; ax, ay and az must share one")
+    vehicle[Veh.ACCEL_LEVEL] = 1.0 if frames == {"level"} else 0.0
     outputs = _parse_outputs(path, top.get("outputs", dict, {}, what="an [outputs] table"))
     calibration = _parse_calibration(
         path, top.get("calibration", dict, {}, what="a [calibration] table"), channels, vehicle)

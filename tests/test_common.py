@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from slipd.channels import G
+from slipd.channels import G, Veh
 from slipd.estimators.common import filters, inputs, kinematics
 from slipd.estimators.selmanaj2017 import wheel_speed
 
@@ -61,6 +61,68 @@ def test_lowpass_settles_with_its_time_constant() -> None:
 def _imu_acceleration(a_cog, omega, omega_dot, r):
     """Rigid body: a_imu = a_cog + omega_dot x r + omega x (omega x r)."""
     return a_cog + np.cross(omega_dot, r) + np.cross(omega, np.cross(omega, r))
+
+
+def test_butterworth_lowpass_equals_scipy_and_starts_without_transient() -> None:
+    """The kernel is scipy.signal.butter(2, ...) + lfilter, started in its steady state."""
+    signal = pytest.importorskip("scipy.signal")
+    rng = np.random.default_rng(7)
+    x = 3.0 + rng.normal(0.0, 1.0, 2000) + np.sin(np.arange(2000) * DT * 2 * np.pi * 0.5)
+    b, a = signal.butter(2, 5.0 / (0.5 / DT))
+    want = signal.lfilter(b, a, x, zi=signal.lfilter_zi(b, a) * x[0])[0]
+    buf = np.full(filters.BUTTERWORTH_SLOTS, np.nan)
+    got = np.array([filters.butterworth_lowpass(buf, 0, v, DT, 5.0) for v in x])
+    assert np.max(np.abs(got - want)) < 1e-9
+    # vibration above the cut-off is removed, the 0.5 Hz motion kept
+    assert np.std(np.diff(got)) < 0.1 * np.std(np.diff(x))
+
+
+def _gravity_drive(share: float, seconds: float = 300.0, bias: float = 0.2):
+    """Quasi-steady corners at 20 m/s: ay = r vx, the sensor adding share * its reading."""
+    t = np.arange(0.0, seconds, DT)
+    vx = 20.0
+    ay_true = 6.0 * np.sin(2 * np.pi * t / 40.0)
+    yaw_rate = ay_true / vx
+    yaw_acc = np.gradient(yaw_rate, DT)
+    ay_measured = ay_true / (1.0 - share) + bias  # ay_meas - share ay_meas = ay_true
+    return ay_measured, yaw_rate, yaw_acc, vx
+
+
+@pytest.mark.parametrize("share", [0.0, 0.03, 0.09])
+def test_gravity_share_is_learnt_from_quasi_steady_driving(share: float) -> None:
+    """A levelled accelerometer (0), a car's roll gradient (0.03 = 1.7 deg/g) and a soft one
+    are found whatever the nominal value, and the offset stays out of the slope."""
+    ay_measured, yaw_rate, yaw_acc, vx = _gravity_drive(share)
+    buf = np.zeros(len(kinematics.GravityMoments))
+    for nominal in (0.0, 0.05):
+        buf[:] = 0.0
+        for k in range(len(ay_measured)):
+            learnt = kinematics.learn_gravity_share(buf, 0, ay_measured[k], yaw_rate[k],
+                                                    yaw_acc[k], vx, DT, nominal)
+        assert learnt == pytest.approx(share, abs=0.006)  # the prior shrinks it a little
+
+
+def test_gravity_share_starts_at_the_nominal_value_and_stays_bounded() -> None:
+    buf = np.zeros(len(kinematics.GravityMoments))
+    assert kinematics.learn_gravity_share(buf, 0, 3.0, 0.1, 0.0, 1.0, DT, 0.02) == 0.02  # slow
+    ay_measured, yaw_rate, yaw_acc, vx = _gravity_drive(0.0)
+    for k in range(len(ay_measured)):  # an accelerometer reading 40 % high: not gravity
+        learnt = kinematics.learn_gravity_share(buf, 0, 1.4 * ay_measured[k], yaw_rate[k],
+                                                yaw_acc[k], vx, DT, 0.02)
+    assert learnt == kinematics.GRAVITY_SHARE_MAX
+
+
+def test_a_levelled_accelerometer_is_not_compensated() -> None:
+    vehicle = np.zeros(len(Veh))
+    vehicle[Veh.MASS], vehicle[Veh.H_ROLL_AXIS], vehicle[Veh.ROLL_STIFFNESS] = 1500.0, 0.5, 8e4
+    buf = np.full(1 + len(kinematics.GravityMoments), np.nan)
+    body = kinematics.remove_roll_gravity(buf, 0, 6.0, 0.0, False, DT, vehicle, 0.5, -1, 0.3,
+                                          0.0, 20.0)
+    assert body < 6.0 - 0.5
+    vehicle[Veh.ACCEL_LEVEL] = 1.0
+    buf[:] = np.nan
+    assert kinematics.remove_roll_gravity(buf, 0, 6.0, 0.0, False, DT, vehicle, 0.5, -1, 0.3,
+                                          0.0, 20.0) == 6.0
 
 
 @settings(max_examples=200, deadline=None)

@@ -88,6 +88,8 @@ PARAMS, DEFAULTS = build_params(
     # pre-processing beyond the classic filter (0 and 0: the baseline)
     ("ROLL_TIME_CONSTANT", 0.0),  # s, roll-gravity compensation of ay; 0 = none
     ("LEVER_ARM_3D", 0.0),  # 1 = CoG shift with roll/pitch motion, 0 = planar
+    ("ROLL_GAIN_LEARNING", 1.0),  # with the roll compensation: its static gain learnt (slipd)
+    ("ACCEL_LOWPASS_HZ", 0.0),  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
 )  # fmt: skip
 
 LAYOUT = build_layout(
@@ -204,6 +206,7 @@ def step(state, u, params, vehicle, dt, out):
     ax, ay, yaw_rate, _, steer, _, _, ay_ok, yaw_rate_ok, _, status = read_inputs(
         state, _IMU, u, vehicle, state[S.R], params[PARAMS.YAW_ACC_CUTOFF_HZ],
         params[PARAMS.ROLL_TIME_CONSTANT], params[PARAMS.LEVER_ARM_3D] > 0.5, dt,
+        params[PARAMS.ROLL_GAIN_LEARNING] > 0.5, params[PARAMS.ACCEL_LOWPASS_HZ],
     )  # fmt: skip
     vx, n_wheels = corner_speed_mean(u, steer, yaw_rate, vehicle)
     if n_wheels < 4:

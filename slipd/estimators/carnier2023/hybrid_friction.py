@@ -185,6 +185,8 @@ class PARAMS(enum.IntEnum):
     BETA_RATE_HIGHPASS = 50  # s, high-pass of eq. 13's beta_dot for the switches; 0 = paper
     MU_UTILISATION_TIME_CONSTANT = 51  # s, low-pass of |A_y| for mu >= |A_y| / g; 0 = paper
     XI_FLOOR = 52  # -, |xi| >= xi_floor |xi_lin| in eq. 11; 0 = paper
+    ROLL_GAIN_LEARNING = 53  # 1 = the roll compensation's static gain learnt (slipd), 0 = profile
+    ACCEL_LOWPASS_HZ = 54  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
 
 
 DEFAULTS = {
@@ -244,6 +246,10 @@ DEFAULTS = {
     "beta_rate_highpass": 0.3,
     "mu_utilisation_time_constant": 0.2,
     "xi_floor": 0.5,
+    "roll_gain_learning": 1.0,
+    # slipd: the switches of eq. 13 and the classifier read ay; a raw IMU's ~1 m/s^2 of body
+    # vibration above 5 Hz (the revs_250lm run) trips them; 5 Hz is above the lateral dynamics
+    "accel_lowpass_hz": 5.0,
 }
 
 _TYRE_PARAMS = (
@@ -350,7 +356,8 @@ def step(state, u, params, vehicle, dt, out):
     classifier_on = params[PARAMS.CLASSIFIER_ENABLED] > 0.5
     ax, ay, yaw_rate, yaw_acc, steer, _, _, ay_ok, yaw_rate_ok, _, status = read_inputs(
         state, _IMU, u, vehicle, state[S.PREV_YAW_RATE], params[PARAMS.YAW_ACC_CUTOFF_HZ],
-        params[PARAMS.ROLL_TIME_CONSTANT], True, dt,
+        params[PARAMS.ROLL_TIME_CONSTANT], True, dt, params[PARAMS.ROLL_GAIN_LEARNING] > 0.5,
+        params[PARAMS.ACCEL_LOWPASS_HZ],
     )  # fmt: skip
     if yaw_rate_ok:
         state[S.PREV_YAW_RATE] = yaw_rate

@@ -123,6 +123,8 @@ class PARAMS(enum.IntEnum):
     ROLL_TIME_CONSTANT = 24  # s, roll complementary filter (0: no gravity compensation)
     STRAIGHT_SIGMA_YAW_RATE = 25  # rad/s, width of the KBE's straight-running Gaussian
     STRAIGHT_SIGMA_AY = 26  # m/s^2, width of the KBE's straight-running Gaussian
+    ROLL_GAIN_LEARNING = 27  # 1 = the roll compensation's static gain learnt (slipd), 0 = profile
+    ACCEL_LOWPASS_HZ = 28  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
 
 
 #: Defaults. The paper publishes no filter tuning (only the vehicle of Table 1, which slipd takes
@@ -158,6 +160,8 @@ DEFAULTS = {
     "roll_time_constant": 1.0,
     "straight_sigma_yaw_rate": 0.05,  # Selmanaj 2017 Table 1 uses 0.18 on the yaw rate alone
     "straight_sigma_ay": 1.0,
+    "roll_gain_learning": 1.0,
+    "accel_lowpass_hz": 0.0,
 }
 
 #: |beta| beyond which the output is clamped and flagged (the 45 deg of the models' domain)
@@ -280,7 +284,7 @@ def insane_parts(state):
 
 
 @nb.njit(cache=True, inline="always")
-def _inputs(state, u, vehicle, roll_time_constant, dt):
+def _inputs(state, u, vehicle, roll_time_constant, dt, learn_roll_gain, accel_lowpass_hz):
     """Pre-processed inputs of one tick with fallbacks (module docstring): ax, ay at the CoG
     (3-D lever arm), ay without the gravity component of the roll; an invalid yaw rate is the
     DBE's once it runs, an invalid ay the last valid one. Returns (ax, ay, yaw_rate, steer,
@@ -288,7 +292,7 @@ def _inputs(state, u, vehicle, roll_time_constant, dt):
     yaw_fallback = state[S.DBE_R] if state[S.INITIALISED] > 0.5 else state[S.LAST_YAW_RATE]
     ax, ay, yaw_rate, _, steer, _, ax_ok, ay_ok, yaw_rate_ok, _, status = read_inputs(
         state, IMU, u, vehicle, yaw_fallback, DERIVATIVE_CUTOFF_HZ, roll_time_constant, True,
-        dt,
+        dt, learn_roll_gain, accel_lowpass_hz,
     )  # fmt: skip
     if yaw_rate_ok:
         state[S.LAST_YAW_RATE] = yaw_rate
@@ -386,7 +390,8 @@ def step(state, u, params, vehicle, dt, out):
     inputs (eq. 2, eq. 9-10). Allocates nothing."""
     min_speed = params[PARAMS.MIN_SPEED]
     ax, ay, yaw_rate, steer, ax_ok, ay_ok, status = _inputs(
-        state, u, vehicle, params[PARAMS.ROLL_TIME_CONSTANT], dt
+        state, u, vehicle, params[PARAMS.ROLL_TIME_CONSTANT], dt,
+        params[PARAMS.ROLL_GAIN_LEARNING] > 0.5, params[PARAMS.ACCEL_LOWPASS_HZ],
     )
     vx_meas, n_wheels = corner_speed_mean(u, steer, yaw_rate, vehicle)
     vx_ok = n_wheels > 0

@@ -65,3 +65,30 @@ def gaussian_bell(a, sigma_a, b, sigma_b):
     x = a / sigma_a
     y = b / sigma_b
     return math.exp(-0.5 * (x * x + y * y))
+
+
+#: Memory of ``butterworth_lowpass``: its two direct-form II transposed states.
+BUTTERWORTH_SLOTS = 2
+
+
+@nb.njit(cache=True, inline="always")
+def butterworth_lowpass(buf, i, signal, dt, cutoff_hz):
+    """Second-order Butterworth low-pass (the bilinear transform with the cut-off prewarped,
+    as scipy.signal.butter(2, cutoff_hz / (0.5 / dt)) designs it), direct form II transposed
+    with its two states at ``buf[i]``, ``buf[i + 1]``; returns y. NaN in ``buf[i]`` starts the
+    filter in its steady state at ``signal`` (no start-up transient). The coefficients follow
+    ``dt``, so a catch-up step keeps the cut-off."""
+    k = math.tan(math.pi * cutoff_hz * dt)
+    norm = 1.0 / (1.0 + math.sqrt(2.0) * k + k * k)
+    b0 = k * k * norm
+    b1 = 2.0 * b0
+    a1 = 2.0 * (k * k - 1.0) * norm
+    a2 = (1.0 - math.sqrt(2.0) * k + k * k) * norm
+    if not math.isfinite(buf[i]):
+        buf[i] = (1.0 - b0) * signal
+        buf[i + 1] = (b0 - a2) * signal
+        return signal
+    y = b0 * signal + buf[i]
+    buf[i] = b1 * signal - a1 * y + buf[i + 1]
+    buf[i + 1] = b0 * signal - a2 * y
+    return y

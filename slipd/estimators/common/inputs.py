@@ -23,7 +23,11 @@ from slipd.channels import (
     In,
     Veh,
 )
-from slipd.estimators.common.filters import derivative_filter
+from slipd.estimators.common.filters import (
+    BUTTERWORTH_SLOTS,
+    butterworth_lowpass,
+    derivative_filter,
+)
 from slipd.estimators.common.kinematics import (
     compensate_wheel_speeds,
     remove_roll_gravity,
@@ -114,6 +118,23 @@ class ImuMemory(enum.IntEnum):
     ROLL = 3  # rad, roll of the gravity compensation (kinematics.roll_complementary_filter)
     LAST_AX = 4  # m/s^2, last valid CoG ax (held while ax is invalid)
     LAST_STEER = 5  # rad, last valid road-wheel steer
+    # moments of the learnt gravity share of ay (kinematics.GravityMoments; 0 = no data)
+    GRAVITY_W = 6
+    GRAVITY_MX = 7
+    GRAVITY_ME = 8
+    GRAVITY_MXX = 9
+    GRAVITY_MXE = 10
+    # the accelerometers' vibration low-pass (filters.butterworth_lowpass; NaN = not started)
+    AX_LOWPASS = 11
+    AX_LOWPASS_2 = 12
+    AY_LOWPASS = 13
+    AY_LOWPASS_2 = 14
+    YAW_RATE_LOWPASS = 15  # the same filter on the yaw rate: vy' = ay - r vx needs both
+    YAW_RATE_LOWPASS_2 = 16  # delayed alike
+
+
+#: ImuMemory slots that hold one Butterworth filter each (BUTTERWORTH_SLOTS long).
+_LOWPASS_SLOTS = (ImuMemory.AX_LOWPASS, ImuMemory.AY_LOWPASS, ImuMemory.YAW_RATE_LOWPASS)
 
 
 def reset_imu(state: np.ndarray, base: int) -> None:
@@ -122,19 +143,45 @@ def reset_imu(state: np.ndarray, base: int) -> None:
     state[base : base + ImuMemory.ROLL + 1] = np.nan
     state[base + ImuMemory.LAST_AX] = 0.0
     state[base + ImuMemory.LAST_STEER] = 0.0
+    reset_accel_lowpass(state, base)
+
+
+def reset_accel_lowpass(state: np.ndarray, base: int) -> None:
+    """The accelerometer low-pass filters of the ImuMemory block at ``base``: not started."""
+    for slot in _LOWPASS_SLOTS:
+        state[base + slot : base + slot + BUTTERWORTH_SLOTS] = np.nan
 
 
 @nb.njit(cache=True, inline="always")
-def imu_at_cog(state, base, u, yaw_rate, roll_rate, pitch_rate, dt, cutoff_hz, vehicle,
-               lever_arm_3d):  # fmt: skip
+def imu_at_cog(state, base, u, yaw_rate_in, roll_rate, pitch_rate, dt, cutoff_hz, vehicle,
+               lever_arm_3d, accel_lowpass_hz):  # fmt: skip
     """The IMU's ax and ay at the CoG, an invalid one entering as 0 (the caller decides the
     fallback). The rates' derivatives come from derivative filters (memory: ImuMemory at
     ``base``); ``lever_arm_3d`` takes the full rigid body (``translate_to_cog``), else the
     planar case of Righetti-Lenzo eq. 21-23 (the roll and pitch filters are then not run).
-    Returns (ax, ay, yaw_acc, ax_ok, ay_ok)."""
+    ``accel_lowpass_hz`` > 0: the raw ax, ay and the yaw rate pass a Butterworth low-pass
+    first (slipd, the methods' ``accel_lowpass_hz``: a raw IMU on a car body carries ~1 m/s^2
+    of vibration above 5 Hz, benchmarks/MEASUREMENTS.md; the yaw rate alike so that the
+    kinematic balance sees both with one delay; a filter is held while its channel is invalid).
+    Returns (ax, ay, yaw_rate, yaw_acc, ax_ok, ay_ok), yaw_rate filtered or as given."""
+    yaw_rate = yaw_rate_in
+    if accel_lowpass_hz > 0.0:
+        yaw_rate = butterworth_lowpass(state, base + ImuMemory.YAW_RATE_LOWPASS, yaw_rate_in, dt,
+                                       accel_lowpass_hz)  # fmt: skip
+    elif not math.isfinite(state[base + ImuMemory.AX_LOWPASS]):
+        # unused filters hold 0, not "not started" (a state read back is finite everywhere)
+        for k in range(ImuMemory.AX_LOWPASS, ImuMemory.YAW_RATE_LOWPASS_2 + 1):
+            state[base + k] = 0.0
     yaw_acc = derivative_filter(state, base + ImuMemory.D_YAW_RATE, yaw_rate, dt, cutoff_hz)
     ax_imu, ax_ok = channel(u, In.AX)
     ay_imu, ay_ok = channel(u, In.AY)
+    if accel_lowpass_hz > 0.0:
+        if ax_ok:
+            ax_imu = butterworth_lowpass(state, base + ImuMemory.AX_LOWPASS, ax_imu, dt,
+                                         accel_lowpass_hz)  # fmt: skip
+        if ay_ok:
+            ay_imu = butterworth_lowpass(state, base + ImuMemory.AY_LOWPASS, ay_imu, dt,
+                                         accel_lowpass_hz)  # fmt: skip
     ax_in = ax_imu if ax_ok else 0.0
     ay_in = ay_imu if ay_ok else 0.0
     if lever_arm_3d:
@@ -150,12 +197,12 @@ def imu_at_cog(state, base, u, yaw_rate, roll_rate, pitch_rate, dt, cutoff_hz, v
         ax, ay = translate_to_cog_planar(
             ax_in, ay_in, yaw_rate, yaw_acc, vehicle[Veh.IMU_X], vehicle[Veh.IMU_Y]
         )
-    return ax, ay, yaw_acc, ax_ok, ay_ok
+    return ax, ay, yaw_rate, yaw_acc, ax_ok, ay_ok
 
 
 @nb.njit(cache=True, inline="always")
 def read_inputs(state, base, u, vehicle, yaw_fallback, cutoff_hz, roll_time_constant,
-                lever_arm_3d, dt):  # fmt: skip
+                lever_arm_3d, dt, learn_roll_gain, accel_lowpass_hz):  # fmt: skip
     """The pre-processed IMU and steer of one tick, with fallbacks for invalid channels.
 
     - yaw rate: an invalid one is replaced by ``yaw_fallback`` (the caller's: its previous
@@ -164,7 +211,9 @@ def read_inputs(state, base, u, vehicle, yaw_fallback, cutoff_hz, roll_time_cons
     - ax, ay moved to the CoG (``imu_at_cog``, 3-D or planar); an invalid ay is returned as 0
       with ay_ok False (the caller substitutes its model's or a held value);
     - with ``roll_time_constant`` > 0 the gravity component of the body roll is removed from
-      a valid ay (``kinematics.remove_roll_gravity``, memory ImuMemory.ROLL).
+      a valid ay (``kinematics.remove_roll_gravity``, memory ImuMemory.ROLL), with the static
+      roll gain learnt from the drive when ``learn_roll_gain`` (memory ImuMemory.GRAVITY_*,
+      the wheels' CoG speed as vx), else the profile's.
 
     ``status``: INPUT_TIMEOUT when the yaw rate, steer, ax or ay is not real; DEGRADED when a
     rate the pre-processing uses is missing (roll and pitch for the 3-D lever arm, roll for
@@ -186,8 +235,9 @@ def read_inputs(state, base, u, vehicle, yaw_fallback, cutoff_hz, roll_time_cons
         status |= ST_DEGRADED  # optional inputs: the translation falls back toward planar
     roll_rate = roll_rate if roll_rate_ok else 0.0
     pitch_rate = pitch_rate if pitch_rate_ok else 0.0
-    ax, ay, yaw_acc, ax_ok, ay_ok = imu_at_cog(
-        state, base, u, yaw_rate, roll_rate, pitch_rate, dt, cutoff_hz, vehicle, lever_arm_3d
+    ax, ay, yaw_rate, yaw_acc, ax_ok, ay_ok = imu_at_cog(
+        state, base, u, yaw_rate, roll_rate, pitch_rate, dt, cutoff_hz, vehicle, lever_arm_3d,
+        accel_lowpass_hz,
     )
     ax = hold_last(state, base + ImuMemory.LAST_AX, ax, ax_ok)
     if not ax_ok:
@@ -198,8 +248,11 @@ def read_inputs(state, base, u, vehicle, yaw_fallback, cutoff_hz, roll_time_cons
     elif roll_time_constant > 0.0:
         if not roll_rate_ok:
             status |= ST_DEGRADED  # roll from the static model alone
+        vx, _ = corner_speed_mean(u, steer, yaw_rate, vehicle)
         ay = remove_roll_gravity(state, base + ImuMemory.ROLL, ay, roll_rate, roll_rate_ok, dt,
-                                 vehicle, roll_time_constant)  # fmt: skip
+                                 vehicle, roll_time_constant,
+                                 base + ImuMemory.GRAVITY_W if learn_roll_gain else -1,
+                                 yaw_rate, yaw_acc, vx)  # fmt: skip
     return (ax, ay, yaw_rate, yaw_acc, steer, roll_rate, ax_ok, ay_ok, yaw_rate_ok, steer_ok,
             status)
 

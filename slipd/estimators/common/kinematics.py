@@ -9,6 +9,7 @@ the docstring says how it was converted.
 
 from __future__ import annotations
 
+import enum
 import math
 
 import numba as nb
@@ -129,14 +130,89 @@ def compensate_gravity_ay(ay_cog, roll):
     return ay_cog - G * math.sin(roll)
 
 
+#: Learning the gravity share of the measured ay online (``learn_gravity_share``): the time
+#: constant of its moments (s of qualifying driving), the speed and yaw-acceleration limits of
+#: quasi-steady driving, the prior's weight (as a variance of ay, (m/s^2)^2: the nominal value
+#: counts as much as that much spread of data) and the bound. 0.15 is 8.6 deg of roll at 1 g,
+#: above any road car's roll gradient (passenger cars 3-7 deg/g, Gillespie, Fundamentals of
+#: Vehicle Dynamics, ch. 8); the lower bound 0 is a levelled (INS) accelerometer.
+GRAVITY_SHARE_TIME_CONSTANT = 60.0
+GRAVITY_SHARE_MIN_SPEED = 5.0
+GRAVITY_SHARE_MAX_YAW_ACC = 0.1
+GRAVITY_SHARE_PRIOR_VARIANCE = 1.0
+GRAVITY_SHARE_MAX = 0.15
+
+
+@enum.unique
+class GravityMoments(enum.IntEnum):
+    """Memory of ``learn_gravity_share``: exponentially forgotten moments of x = measured ay
+    and e = ay - r vx over the quasi-steady ticks (W: the weight collected, 0 = no data)."""
+
+    W = 0
+    MX = 1
+    ME = 2
+    MXX = 3
+    MXE = 4
+
+
 @nb.njit(cache=True, inline="always")
-def remove_roll_gravity(buf, i, ay_cog, roll_rate, roll_rate_valid, dt, vehicle, time_constant):
+def learn_gravity_share(buf, i, ay_measured, yaw_rate, yaw_acc, vx, dt, nominal_share):
+    """The share s of the measured ay that is gravity from the body roll, learnt from the
+    drive: Ay_meas = Ay + g sin(phi) (Selmanaj eq. 17) with the static roll phi ~ k Ay_meas
+    (eq. 16), so e = Ay_meas - omega_z vx = dVy/dt + g k Ay_meas + offset. In quasi-steady
+    driving (vx > GRAVITY_SHARE_MIN_SPEED, |yaw acc| < GRAVITY_SHARE_MAX_YAW_ACC) dVy/dt ~ 0
+    and the slope of e over Ay_meas is s = g k: a least-squares line with an intercept (the
+    offset and a bank average out of the slope) on moments forgotten with
+    GRAVITY_SHARE_TIME_CONSTANT, shrunk to ``nominal_share`` (the profile's roll model) with
+    the weight GRAVITY_SHARE_PRIOR_VARIANCE, bounded to [0, GRAVITY_SHARE_MAX]. A body-frame
+    ESC sensor learns its car's roll gradient, an unknown roll stiffness is corrected, and an
+    accelerometer that is already levelled learns s ~ 0. ``buf[i:]``: GravityMoments."""
+    if vx > GRAVITY_SHARE_MIN_SPEED and abs(yaw_acc) < GRAVITY_SHARE_MAX_YAW_ACC:
+        a = dt / GRAVITY_SHARE_TIME_CONSTANT
+        e = ay_measured - yaw_rate * vx
+        buf[i + GravityMoments.W] += a * (1.0 - buf[i + GravityMoments.W])
+        buf[i + GravityMoments.MX] += a * (ay_measured - buf[i + GravityMoments.MX])
+        buf[i + GravityMoments.ME] += a * (e - buf[i + GravityMoments.ME])
+        buf[i + GravityMoments.MXX] += a * (ay_measured * ay_measured - buf[i + GravityMoments.MXX])
+        buf[i + GravityMoments.MXE] += a * (ay_measured * e - buf[i + GravityMoments.MXE])
+    w = buf[i + GravityMoments.W]
+    if w <= 0.0:
+        share = nominal_share
+    else:
+        # the started averages divided by w are unbiased (as in ensemble's moments)
+        mx = buf[i + GravityMoments.MX] / w
+        me = buf[i + GravityMoments.ME] / w
+        var_x = buf[i + GravityMoments.MXX] / w - mx * mx
+        cov_xe = buf[i + GravityMoments.MXE] / w - mx * me
+        share = ((w * cov_xe + GRAVITY_SHARE_PRIOR_VARIANCE * nominal_share)
+                 / (w * var_x + GRAVITY_SHARE_PRIOR_VARIANCE))
+    if share < 0.0:
+        share = 0.0
+    elif share > GRAVITY_SHARE_MAX:
+        share = GRAVITY_SHARE_MAX
+    return share
+
+
+@nb.njit(cache=True, inline="always")
+def remove_roll_gravity(buf, i, ay_cog, roll_rate, roll_rate_valid, dt, vehicle, time_constant,
+                        learn_at, yaw_rate, yaw_acc, vx):  # fmt: skip
     """ay without the gravity component of the body roll: the roll of
-    ``roll_complementary_filter`` (memory ``buf[i]``) with the profile's static roll gain,
-    then eq. 17. Not in Righetti-Lenzo, Carnier or Chen; slipd adds it to their
-    pre-processing (each method's docstring says why)."""
-    roll = roll_complementary_filter(buf, i, ay_cog, roll_rate, roll_rate_valid, dt,
-                                     vehicle_roll_gain(vehicle), time_constant)
+    ``roll_complementary_filter`` (memory ``buf[i]``), then eq. 17. Not in Righetti-Lenzo,
+    Carnier or Chen; slipd adds it to their pre-processing (each method's docstring says why).
+
+    The static roll gain is the profile's (``vehicle_roll_gain``, Selmanaj eq. 16) when
+    ``learn_at`` < 0, else learnt from the drive (``learn_gravity_share``, memory
+    GravityMoments at ``buf[learn_at]``; a slipd departure, the methods' ``roll_gain_learning``
+    parameter). An accelerometer the profile declares levelled (``Veh.ACCEL_LEVEL``, an INS)
+    carries no gravity: ay is returned as it is."""
+    if vehicle[Veh.ACCEL_LEVEL] > 0.5:
+        return ay_cog
+    gain = vehicle_roll_gain(vehicle)
+    if learn_at >= 0:
+        gain = learn_gravity_share(buf, learn_at, ay_cog, yaw_rate, yaw_acc, vx, dt,
+                                   G * gain) / G  # fmt: skip
+    roll = roll_complementary_filter(buf, i, ay_cog, roll_rate, roll_rate_valid, dt, gain,
+                                     time_constant)  # fmt: skip
     return compensate_gravity_ay(ay_cog, roll)
 
 

@@ -112,6 +112,8 @@ FILTER_PARAMS = (
     # pre-processing beyond the paper's Sec. 3.1 (module docstring; 0 and 0 = the paper's)
     ("ROLL_TIME_CONSTANT", 1.0),  # s, roll complementary filter; 0 = none
     ("LEVER_ARM_3D", 1.0),  # 1 = CoG shift with roll/pitch motion, 0 = planar
+    ("ROLL_GAIN_LEARNING", 1.0),  # 1 = the roll compensation's static gain learnt, 0 = profile's
+    ("ACCEL_LOWPASS_HZ", 0.0),  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
 )
 #: Q_dyn and R_dyn of eq. 28 (Sec. 4), the dynamic EKF's in dk_ekf and d_ekf ("The D-EKF
 #: covariance matrices are set equal to the ones in (28)"); they follow FILTER_PARAMS there.
@@ -288,6 +290,7 @@ def begin_tick(state, u, params, vehicle, dt):
     ax, ay, yaw_rate, _, steer, _, _, ay_ok, yaw_rate_ok, _, status = read_inputs(
         state, _IMU, u, vehicle, state[S.PREV_YAW_RATE], params[FILTER.YAW_ACC_CUTOFF_HZ],
         params[FILTER.ROLL_TIME_CONSTANT], params[FILTER.LEVER_ARM_3D] > 0.5, dt,
+        params[FILTER.ROLL_GAIN_LEARNING] > 0.5, params[FILTER.ACCEL_LOWPASS_HZ],
     )  # fmt: skip
     running = state[S.INITIALISED] > 0.5 and state[S.KIN_VX] >= params[FILTER.MIN_SPEED]
     return ax, ay, yaw_rate, steer, ay_ok, yaw_rate_ok, running, status

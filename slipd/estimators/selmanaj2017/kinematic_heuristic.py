@@ -127,6 +127,7 @@ from slipd.estimators.common.inputs import (
     Offsets,
     ax_offset_active,
     channel,
+    corner_speed_mean,
     hold_last,
     imu_at_cog,
     reset_offsets,
@@ -176,6 +177,7 @@ _IMU = int(S.IMU)
 _OFFSETS = int(S.OFFSETS)
 _ROLL = _IMU + int(ImuMemory.ROLL)
 _STEER_HELD = _IMU + int(ImuMemory.LAST_STEER)
+_GRAVITY = _IMU + int(ImuMemory.GRAVITY_W)  # learn_gravity_share's moments
 _WHEELS = int(S.WHEELS)
 _N_WHEELS = len(Wheels)
 _DERIVATIVES = (int(S.D_STEER_WHEEL), int(S.D_VX) + 1)  # slots [first, stop)
@@ -188,7 +190,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     Offsets learnt in an earlier run can be copied into the OFFSETS block (the paper starts
     each key-on from the last estimate, section 5.2; the daemon does it by ``PERSISTENT``).
     """
-    state = np.empty(LAYOUT.size, dtype=np.float64)
+    state = np.zeros(LAYOUT.size, dtype=np.float64)  # learnt blocks start empty (0)
     _reset(state, params)
     reset_offsets(state, _OFFSETS)
     return state
@@ -210,6 +212,8 @@ def _reset(state, params):
         state[k] = math.nan
     state[_IMU + ImuMemory.LAST_AX] = 0.0
     state[_STEER_HELD] = 0.0
+    for k in range(_IMU + ImuMemory.AX_LOWPASS, _IMU + ImuMemory.AY_LOWPASS_2 + 1):
+        state[k] = math.nan  # the accelerometer low-pass filters restart
     for k in range(_DERIVATIVES[0], _DERIVATIVES[1]):
         state[k] = math.nan
     for k in range(_WHEELS, _WHEELS + _N_WHEELS):
@@ -285,12 +289,15 @@ def _accelerations(state, u, params, vehicle, dt, roll_rate_ok, pitch_rate_ok, l
                                 learning, dt, settling)  # fmt: skip
     pitch_rate = _corrected_rate(state, u, In.PITCH_RATE, Offsets.PITCH_RATE, pitch_rate_ok,
                                  learning, dt, settling)  # fmt: skip
-    ax_cog, ay_cog, yaw_acc, _, _ = imu_at_cog(
+    ax_cog, ay_cog, yaw_rate, yaw_acc, _, _ = imu_at_cog(
         state, _IMU, u, yaw_rate, roll_rate, pitch_rate, dt,
-        params[PARAMS.DERIVATIVE_CUTOFF_HZ], vehicle, True,
+        params[PARAMS.DERIVATIVE_CUTOFF_HZ], vehicle, True, params[PARAMS.ACCEL_LOWPASS_HZ],
     )  # fmt: skip
+    vx, _ = corner_speed_mean(u, state[_STEER_HELD], yaw_rate, vehicle)
+    learn_at = _GRAVITY if params[PARAMS.ROLL_GAIN_LEARNING] > 0.5 else -1
     ay_with_offset = remove_roll_gravity(state, _ROLL, ay_cog, roll_rate, roll_rate_ok, dt,
-                                         vehicle, params[PARAMS.ROLL_FILTER_TIME_CONSTANT])
+                                         vehicle, params[PARAMS.ROLL_FILTER_TIME_CONSTANT],
+                                         learn_at, yaw_rate, yaw_acc, vx)  # fmt: skip
     return ax_cog, ay_with_offset, yaw_rate, yaw_acc
 
 

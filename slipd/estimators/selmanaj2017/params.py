@@ -47,6 +47,8 @@ class PARAMS(enum.IntEnum):
     STEADY_BIAS_TIME_CONSTANT = 31  # s, learning of the steady-state ay bias, 0 = no learning
     STEADY_HOLD_CORRECTION = 32  # -, share of the hold also applied to the a2 Vx-error term
     STEADY_COUNTERSTEER = 33  # -, 1: steering against the yaw rate (a drift) is never steady
+    ROLL_GAIN_LEARNING = 34  # 1: eq. 16's static roll gain learnt from the drive, 0 = paper
+    ACCEL_LOWPASS_HZ = 35  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
 
 
 #: Table 1 of Selmanaj et al. 2017, verbatim (paper symbol -> params name): alpha_0, alpha_1,
@@ -115,4 +117,13 @@ DEFAULTS: dict[str, float] = {
     "steady_bias_time_constant": 3.0,
     "steady_hold_correction": 0.5,
     "steady_countersteer": 1.0,
+    # Extension, not in the paper (0 = eq. 16 with the profile's roll data): the gravity share
+    # of ay learnt from quasi-steady driving (kinematics.learn_gravity_share); a wrong roll
+    # stiffness or a levelled accelerometer otherwise biases ay in every corner (issue 17).
+    "roll_gain_learning": 1.0,
+    # Extension, not in the paper (0 = the paper, whose ESC sensor is filtered already): a raw
+    # IMU on a car body carries ~1 m/s^2 of vibration above 5 Hz (the revs_250lm run), which
+    # keeps the straight-running bells of eq. 5-7 from closing; 5 Hz is above the vehicle's
+    # lateral dynamics (yaw and roll modes 1-2 Hz).
+    "accel_lowpass_hz": 5.0,
 }

@@ -333,9 +333,9 @@ def step(state, u, params, vehicle, dt, out):
     steer = hold_last(state, _LAST_STEER, steer, steer_ok)
     if not steer_ok:
         status |= ST_INPUT_TIMEOUT
-    ax, ay, _, ax_ok, ay_ok = imu_at_cog(
+    ax, ay, _, _, ax_ok, ay_ok = imu_at_cog(
         state, IMU, u, yaw_rate, roll_rate, pitch_rate, dt, params[PARAMS.YAW_ACC_CUTOFF_HZ],
-        vehicle, True,
+        vehicle, True, params[PARAMS.ACCEL_LOWPASS_HZ],
     )  # fmt: skip
     ay_imu = u[In.AY]  # at the sensor, for the static roll model
     ax = hold_last(state, _LAST_AX, ax, ax_ok)

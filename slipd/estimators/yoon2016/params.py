@@ -70,6 +70,7 @@ class PARAMS(enum.IntEnum):
     MAX_YAW_RATE_BIAS = 49  # rad/s, clamp of that correction
     FIELD_NORM_TOLERANCE = 50  # uT, |field norm - earth field| for a gate lock-out restart
     MU_GATE_CHI2 = 51  # chi-square (1 dof): beyond it the a_y sample is down-weighted (slipd)
+    ACCEL_LOWPASS_HZ = 52  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
 
 DEFAULTS = {
     # the heading EKF is driven by the gyro and corrected at 50 Hz; a small yaw random walk
@@ -140,4 +141,5 @@ DEFAULTS = {
     # 3 uT: the norm residual of the learned calibration reached 2-3 uT in handling (roll,
     # headings not yet calibrated); a truck's disturbance is 2-15 uT
     "field_norm_tolerance": 3.0,
+    "accel_lowpass_hz": 0.0,
 }
