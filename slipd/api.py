@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from slipd.errors import ConfigError, DependencyError
+from slipd.estimators import registry
 
 if TYPE_CHECKING:
     import numpy as np
@@ -214,7 +215,7 @@ def decode(log: Any, profile: str | os.PathLike | Profile = "default", *,
 
 @_kernels
 def estimate(source: Any, profile: str | os.PathLike | Profile = "default",
-             estimator: str | Sequence[str] = "kinematic_heuristic", *,
+             estimator: str | Sequence[str] = registry.DEFAULT_ESTIMATOR, *,
              overrides: Mapping[str, float] | None = None,
              buses: Mapping[str, str] | None = None, skip_bad: bool = False) -> pd.DataFrame:
     """Run estimators over a log, python-can Messages, a :class:`Simulation` or a DataFrame
@@ -555,7 +556,7 @@ class Estimator:
     """
 
     @_kernels
-    def __init__(self, name: str = "kinematic_heuristic",
+    def __init__(self, name: str = registry.DEFAULT_ESTIMATOR,
                  profile: str | os.PathLike | Profile = "default",
                  overrides: Mapping[str, float] | None = None,
                  buses: Mapping[str, str] | None = None):

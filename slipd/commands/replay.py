@@ -6,15 +6,17 @@ import argparse
 import sys
 from pathlib import Path
 
+from slipd.estimators import registry
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("logs", nargs="+", type=Path, metavar="LOG",
                         help="candump -L log(s) (.log, .log.gz) or .asc/.blf/.trc/.mf4/.csv")
     parser.add_argument("--profile", default="default",
                         help="vehicle profile name or TOML path (default: default)")
-    parser.add_argument("--estimator", default="kinematic_heuristic",
+    parser.add_argument("--estimator", default=registry.DEFAULT_ESTIMATOR,
                         help="method name, comma-separated names, or 'all' "
-                             "(default: kinematic_heuristic)")
+                             f"(default: {registry.DEFAULT_ESTIMATOR})")
     parser.add_argument("--out", type=Path,
                         help="write per-tick estimates to FILE.csv (+ FILE.csv.meta.json), "
                              "FILE.parquet, FILE.mcap (inputs, estimates and truth as topics, "

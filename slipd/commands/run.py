@@ -7,6 +7,8 @@ import sys
 import tomllib
 from pathlib import Path
 
+from slipd.estimators import registry
+
 SYSTEM_CONFIG = Path("/etc/slipd/slipd.toml")
 #: config-file keys (same names as the options, with underscores)
 CONFIG_KEYS = {"profile", "interface", "channel", "estimator", "recorder", "stats_socket",
@@ -50,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="more arguments for python-can's Bus(), e.g. receive_own_messages=1")
     bus.add_argument("--listen-only", action="store_true", default=None,
                      help="estimate and record, send nothing (a first drive on an unknown car)")
-    parser.add_argument("--estimator", help="method (default kinematic_heuristic)")
+    parser.add_argument("--estimator", help=f"method (default {registry.DEFAULT_ESTIMATOR})")
     parser.add_argument("--duration", type=float, help="stop after S seconds")
     parser.add_argument("--recorder", type=Path, help="flight-recorder candump log")
     parser.add_argument("--stats-socket", help="unix socket for `slipd stats`")
@@ -78,7 +80,7 @@ def _settings(args: argparse.Namespace) -> dict:
     from slipd.errors import ConfigError
 
     settings = {"profile": "default", "interface": "socketcan", "channel": "can0",
-                "estimator": "kinematic_heuristic", "sched_fifo": 0, "mlockall": False,
+                "estimator": registry.DEFAULT_ESTIMATOR, "sched_fifo": 0, "mlockall": False,
                 "gc_freeze": False}
     path = args.config or (SYSTEM_CONFIG if SYSTEM_CONFIG.exists() else None)
     document_keys: set[str] = set()

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from slipd.channels import ST_VALID, Out
+from slipd.estimators import registry
 
 DEMO_DIR = Path(".slipd-demo")
 
@@ -57,7 +58,7 @@ def run_demo(args: argparse.Namespace) -> int:
     log_start = messages[0].timestamp
     truth_t, truth_beta, truth_vx = _truth(truth_path, log_start)
     profile = load_profile(args.profile or "default")
-    estimator = args.estimator or "kinematic_heuristic"
+    estimator = args.estimator or registry.DEFAULT_ESTIMATOR
     duration = args.duration or (messages[-1].timestamp - log_start + 0.5)
     daemon_bus = can.Bus(interface="virtual", channel=channel)
     player_bus = can.Bus(interface="virtual", channel=channel)

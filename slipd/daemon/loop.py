@@ -38,6 +38,7 @@ from slipd.daemon.service import (
 from slipd.daemon.stats import Stats, StatsServer
 from slipd.daemon.transmit import QUEUE_FULL, frame_buffer, frame_writer, payload
 from slipd.errors import ConfigError
+from slipd.estimators import registry
 from slipd.pipeline import TICK_DT, Pipeline, catch_up_steps
 from slipd.profile import Profile
 
@@ -52,7 +53,7 @@ TICK_MESSAGES = ("SLIPD_STATE", "SLIPD_AUX")  # sent every tick; SLIPD_DIAG once
 @dataclass
 class DaemonConfig:
     profile: Profile
-    estimator: str = "kinematic_heuristic"
+    estimator: str = registry.DEFAULT_ESTIMATOR
     interface: str = "socketcan"
     channel: str = "can0"
     #: profile bus name -> channel (``--bus chassis=can0``); a one-bus profile needs none
