@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from slipd.errors import ConfigError, DependencyError
-from slipd.estimators import registry
 
 if TYPE_CHECKING:
     import numpy as np
@@ -80,9 +79,13 @@ def _profile(profile: str | os.PathLike | Profile) -> Profile:
     return profile if isinstance(profile, Profile) else load_profile(profile)
 
 
-def _methods(estimator: str | Sequence[str]) -> list[str]:
+def _methods(estimator: str | Sequence[str] | None) -> list[str]:
+    """The names ``estimator`` says; None: the default (``registry.DEFAULT_ESTIMATOR``; the
+    registry is imported here, so that importing slipd loads no estimator code)."""
     from slipd.estimators import registry
 
+    if estimator is None:
+        return [registry.DEFAULT_ESTIMATOR]
     if isinstance(estimator, str):
         return registry.parse_names(estimator)
     chosen = list(estimator)
@@ -215,13 +218,14 @@ def decode(log: Any, profile: str | os.PathLike | Profile = "default", *,
 
 @_kernels
 def estimate(source: Any, profile: str | os.PathLike | Profile = "default",
-             estimator: str | Sequence[str] = registry.DEFAULT_ESTIMATOR, *,
+             estimator: str | Sequence[str] | None = None, *,
              overrides: Mapping[str, float] | None = None,
              buses: Mapping[str, str] | None = None, skip_bad: bool = False) -> pd.DataFrame:
     """Run estimators over a log, python-can Messages, a :class:`Simulation` or a DataFrame
     of SI channels per 10 ms tick (``t`` plus channel columns, as :func:`decode` returns).
 
-    ``estimator``: a name, a list of names, comma-separated names or ``"all"``;
+    ``estimator``: a name, a list of names, comma-separated names or ``"all"`` (None: the
+    default, ``d_ekf``);
     ``overrides``: parameter values by name (one method only); ``buses``: as :func:`decode`.
     Returns one row per tick and
     method: ``t`` (s), ``estimator``, ``beta``, ``beta_rate``, ``vx``, ``vy``, ``mu`` (NaN where
@@ -556,7 +560,7 @@ class Estimator:
     """
 
     @_kernels
-    def __init__(self, name: str = registry.DEFAULT_ESTIMATOR,
+    def __init__(self, name: str | None = None,
                  profile: str | os.PathLike | Profile = "default",
                  overrides: Mapping[str, float] | None = None,
                  buses: Mapping[str, str] | None = None):
@@ -565,7 +569,7 @@ class Estimator:
         from slipd.channels import N_OUT, U_LEN
         from slipd.pipeline import Pipeline
 
-        if not isinstance(name, str) or name == "all" or "," in name:
+        if name is not None and (not isinstance(name, str) or name == "all" or "," in name):
             raise ConfigError(f"Estimator takes one estimator name, got {name!r}")
         self.name = _methods(name)[0]
         self.profile = _profile(profile)
