@@ -311,12 +311,16 @@ def read_candump(path: str | Path, skip_bad: bool = False) -> Frames:
     if not path.exists():
         raise LogFormatError(f"{path}: no such file")
     buf, mapped = _load_bytes(path)
+    error = None
     try:
         return parse_candump(buf, str(path), skip_bad)
+    except LogFormatError as exc:  # a fresh one: the parser's frame holds the mapped buffer
+        error = LogFormatError(str(exc))
     finally:
         del buf
         if mapped is not None:
             mapped.close()
+    raise error
 
 
 def parse_candump(buf: np.ndarray, source: str, skip_bad: bool = False,
