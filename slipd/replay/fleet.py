@@ -16,7 +16,7 @@ the folder name, as pyarrow's hive partitioning expects: ``pandas.read_parquet(D
 "estimates")`` has a ``log`` column). A log's record (:data:`RECORD_FIELDS`): its path, size,
 modification time and SHA-256, the profile (name, as given, and a SHA-256 of its TOML and
 DBC), the methods, frames, ticks, skipped lines, rejected frames, the VALID share of each
-method, the seconds it took and where, and its status and error.
+method, the seconds it took and where (with that worker's peak RSS), and its status and error.
 
 A partition is written to a hidden file and renamed when complete, so an interrupted run
 leaves only whole partitions; ``--resume`` skips each log whose partition records the same
@@ -190,6 +190,8 @@ class LogRecord:
     valid_share: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
     worker: str = ""
+    #: the worker process's peak RSS so far (MB) when the log was done
+    peak_rss_mb: float = 0.0
     status: str = "ok"  # ok | skipped (--resume: done before) | failed
     error: str = ""
     partition: str = ""
@@ -227,7 +229,14 @@ def replay_log(job: LogJob) -> LogRecord:
     except Exception as exc:  # noqa: BLE001 - the batch goes on; the row says what happened
         record.status, record.error = "failed", f"{type(exc).__name__}: {exc}"
     record.seconds = round(time.perf_counter() - started, 3)
+    record.peak_rss_mb = _peak_rss_mb()
     return record
+
+
+def _peak_rss_mb() -> float:
+    import resource
+
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
 
 
 def _replay_into(job: LogJob, record: LogRecord, started: float) -> None:
@@ -274,6 +283,7 @@ def _replay_into(job: LogJob, record: LogRecord, started: float) -> None:
         if writer is not None:
             record.partition = str(target)
             record.seconds = round(time.perf_counter() - started, 3)
+            record.peak_rss_mb = _peak_rss_mb()
             writer.add_metadata({RECORD_KEY: record.as_json()})
             writer.close()
     except BaseException:
