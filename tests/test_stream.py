@@ -247,6 +247,28 @@ def test_the_csv_kernel_writes_what_python_formats(values, decimals, empty_if_na
     assert textformat.format_csv(row[None, :], kinds, "method", 1).decode() == expected
 
 
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 10**9), st.integers(0, 6))
+def test_the_csv_kernel_writes_unix_tick_times_itself(tick, decimals):
+    """A log's tick times (a Unix time plus k * 10 ms) are formatted by the kernel, not left
+    to Python row by row (which made the CSV writer the replay's bottleneck), and exactly; it
+    defers only an exact binary tie (a cell whose value times 10**d ends in exactly .5)."""
+    from fractions import Fraction
+
+    t = np.array([[1.7e9 + 0.01 + tick * 0.01, 1_700_000_123.456789]])
+    kinds = np.full(2, decimals)
+    out = np.empty(textformat.row_room(kinds, b""), dtype=np.uint8)
+    python_rows = np.zeros(1, dtype=np.bool_)
+    used, marked = textformat.format_rows(t, kinds, np.zeros(0, np.uint8), -1, out,
+                                          python_rows, np.zeros(1, np.int64))
+    expected = textformat.python_row(t[0], kinds, "", -1)
+    ties = [Fraction(x) * 10**decimals % 1 == Fraction(1, 2) for x in t[0].tolist()]
+    assert bool(marked) == any(ties)
+    if not marked:
+        assert out[:used].tobytes().decode() == expected
+    assert textformat.format_csv(t, kinds).decode() == expected
+
+
 def test_the_csv_kernel_on_ties_and_signed_zeros():
     values = np.array([[0.125, -0.0, 2.5e-6, -1e-7, 0.5, 1e30, 123456.5, -0.000005]])
     for d in range(7):

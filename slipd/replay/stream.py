@@ -57,9 +57,11 @@ from slipd.replay.engine import (
     recorded_ticks,
 )
 
-#: Log text per chunk: ~450,000 frames of a candump log, ~11 minutes of the default profile's
-#: bus; the chunk's arrays take ~60 MB with every method's outputs.
-CHUNK_BYTES = 16 << 20
+#: Log text per chunk: ~90,000 frames of a candump log, ~2 minutes of the default profile's
+#: bus. Measured on the endurance drive with every method and --out x.parquet (benchmarks/
+#: fleet.py): a 16 MB chunk peaked at ~640 MB RSS, 4 MB at ~440 MB (of which ~290 MB are the
+#: loaded kernels), at the same speed.
+CHUNK_BYTES = 4 << 20
 #: Bytes of a candump line, for sizing chunks of the formats read message by message.
 _LINE_BYTES = 36
 

@@ -6,12 +6,15 @@ formats one value in ~150 ns, so a row of ten took ~2 us and the CSV writer capp
 (``0.1234567890123``), which would change the files. :func:`format_rows` writes the same text
 as Python at ~50 ns a value.
 
-Exactness: ``|x| * 10**d`` is computed in float64 (``10**d`` is exact for ``d <= 22``) with
-an error of at most half an ulp. Where the decimal fraction of that product is farther than
-two ulps from one half, rounding it gives the digits Python prints (Python rounds the exact
-binary value, half to even); the few values closer to a tie, and any value of 2**52 or more
-after scaling, are left to Python: the row is flagged and :func:`format_csv` formats it with
-:func:`python_row`, the plain twin the tests compare the kernel with.
+Exactness: ``|x|`` is split into its integer part and its fraction (both exact doubles), and
+the fraction times ``10**d`` is computed in float64 (``10**d`` is exact for ``d <= 22``) with
+an error of at most half an ulp of a number below ``10**d`` (scaling the whole of a Unix time
+such as 1.7e9 by 1e6 would leave ulps of 0.25, and every such cell to Python). Where the
+decimal fraction of that product is farther than two ulps from one half, rounding it gives the
+digits Python prints (Python rounds the exact binary value, half to even); the few values
+closer to a tie, and any value of 2**52 or more after scaling, are left to Python: the row is
+flagged and :func:`format_csv` formats it with :func:`python_row`, the plain twin the tests
+compare the kernel with.
 """
 
 from __future__ import annotations
@@ -71,17 +74,21 @@ def _put_fixed(out, p, x, decimals):
         return p + 3
     negative = x < 0.0 or (x == 0.0 and math.copysign(1.0, x) < 0.0)
     scale = 10.0**decimals
-    y = abs(x) * scale
-    if y >= _TWO52:
+    magnitude = abs(x)
+    if magnitude * scale >= _TWO52:
         return -1
+    # the integer part and the fraction of |x| are exact doubles; only the fraction is
+    # scaled, so a large x (a Unix time) keeps the fraction's own precision
+    integer = math.floor(magnitude)
+    y = (magnitude - integer) * scale
     whole = math.floor(y)
     fraction = y - whole
     if abs(fraction - 0.5) <= y * _TIE_ULPS + 1e-300:
         return -1
-    rounded = np.int64(whole) + (1 if fraction > 0.5 else 0)
     power = np.int64(1)
     for _ in range(decimals):
         power *= 10
+    rounded = np.int64(integer) * power + np.int64(whole) + (1 if fraction > 0.5 else 0)
     if negative:
         out[p] = 45
         p += 1
