@@ -133,21 +133,24 @@ def memory(log: Path, tmp: Path, methods: str, long_copies: int, skip_24h: bool,
 
 def simulated_logs(folder: Path, count: int) -> list[Path]:
     """``count`` simulated drives: the suite's scenarios but the endurance drive in turn,
-    seeds 0, 1, ... (two processes simulate)."""
+    seeds 0, 1, ... (two processes simulate); those in ``folder`` already are kept."""
     from concurrent.futures import ProcessPoolExecutor
 
     from slipd.commands.sim import simulate_to_files
     from slipd.sim import SCENARIOS
 
     names = [name for name in SCENARIOS if name != "endurance"]
-    jobs = []
+    jobs, logs = [], []
     for k in range(count):
         out = folder / f"seed{k // len(names)}"
         out.mkdir(parents=True, exist_ok=True)
-        jobs.append((names[k % len(names)], out, 2, k // len(names)))
-    with ProcessPoolExecutor(2) as pool:
-        list(pool.map(simulate_to_files, *zip(*jobs, strict=True)))
-    return sorted(folder.glob("seed*/*.log"))
+        logs.append(out / f"{names[k % len(names)]}.log")
+        if not logs[-1].exists():
+            jobs.append((names[k % len(names)], out, 2, k // len(names)))
+    if jobs:
+        with ProcessPoolExecutor(2) as pool:
+            list(pool.map(simulate_to_files, *zip(*jobs, strict=True)))
+    return logs
 
 
 def sequential_fleet(out: str, methods: str, *logs: str) -> None:
@@ -183,11 +186,11 @@ def same_datasets(a: Path, b: Path) -> bool:
     return True
 
 
-def dask(tmp: Path, count: int, methods: str, workers: int) -> None:
+def dask(tmp: Path, count: int, methods: str, workers: int, folder: Path | None) -> None:
     import pyarrow.parquet as pq
 
     started = time.perf_counter()
-    logs = simulated_logs(tmp / "logs", count)
+    logs = simulated_logs(folder or tmp / "logs", count)
     print(f"{len(logs)} simulated logs ({sum(p.stat().st_size for p in logs) / 1e6:.0f} MB) "
           f"in {time.perf_counter() - started:.0f} s", flush=True)
     code = ("import sys; from benchmarks.fleet import sequential_fleet; "
@@ -253,6 +256,8 @@ def main() -> None:
     parser.add_argument("--logs", type=int, default=40, help="simulated logs of the Dask run")
     parser.add_argument("--dask-estimator", default="all", help="methods of the Dask run")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--fleet-logs", type=Path, metavar="DIR",
+                        help="keep the simulated logs of the Dask run here (and reuse them)")
     parser.add_argument("--only", choices=("memory", "dask"))
     args = parser.parse_args()
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
@@ -262,7 +267,7 @@ def main() -> None:
             log = args.log or endurance_log(tmp)
             memory(log, tmp, args.estimator, args.day_copies, args.skip_24h, args.whole_24h)
         if args.only != "memory":
-            dask(tmp, args.logs, args.dask_estimator, args.workers)
+            dask(tmp, args.logs, args.dask_estimator, args.workers, args.fleet_logs)
 
 
 if __name__ == "__main__":

@@ -353,7 +353,10 @@ class ParquetWriter(EstimateWriter):
             self._end_method()
             for method, spill in self._spills.items():
                 spill.close()
-                with self._pa.ipc.open_stream(str(self._order.spills[method])) as reader:
+                # a NativeFile, not the path: open_stream memory-maps a path, and the pages
+                # of a spill read back count in the RSS (a 24 h log's spills are GBs)
+                with self._pa.OSFile(str(self._order.spills[method]), "rb") as file, \
+                        self._pa.ipc.open_stream(file) as reader:
                     for batch in reader:
                         self._add(self._pa.Table.from_batches([batch]))
                 self._end_method()
