@@ -417,7 +417,8 @@ class Latcher:
                 pending.data, ((0, 0), (0, self.width - pending.data.shape[1])))
             U = np.zeros((len(ticks), U_LEN))
             kernels.latch_ticks(p.plan_i, p.plan_f, p.lookup, p.timeouts,
-                                self.codec.channel_timeouts, pending.t, bus, pending.frame_id,
+                                self.codec.channel_timeouts, self.codec.calibration, pending.t,
+                                bus, pending.frame_id,
                                 pending.flags, pending.dlc.astype(np.int64), data, ticks,
                                 tick_until, s.latch, s.msg_state, s.errors, U)
         else:
