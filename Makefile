@@ -44,6 +44,7 @@ lint: setup
 bench: setup
 	$(BIN)/python -m benchmarks.codec
 	$(BIN)/python -m benchmarks.replay
+	$(BIN)/python -m benchmarks.fleet
 	$(BIN)/python -m benchmarks.estimators
 	$(BIN)/python -m benchmarks.formats
 	$(BIN)/python -m benchmarks.sim_variants

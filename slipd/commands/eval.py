@@ -3,6 +3,12 @@
     slipd eval LOG [--truth TRUTH] [--estimator NAME,...|all] [--profile P] [--min-speed KPH]
                [--mismatch all|CASE,...] [--json] [--out FILE.json] [--plot FILE.png|.pdf|.svg]
     slipd eval --suite DIR [same options]
+    slipd eval LOG... [--dask local[:N]|tcp://HOST:PORT] [same options]
+
+Several logs (or a quoted glob) are scored like a suite, each with its LOG.truth.csv; with
+``--dask`` one task per log (and mismatch case) on dask.distributed, pooled in the logs'
+order, so the figures equal a run without it; a log that fails is reported and left out of
+the pooled figures, and the command exits 1.
 
 Without ``--mismatch`` every log is scored with the profile as given; with it, the nominal
 profile first and then each mismatch case (slipd.eval.mismatch), one at a time, every log of
@@ -12,6 +18,7 @@ the run each time, and a table per case plus the cases pooled.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -25,7 +32,8 @@ NOMINAL = "nominal"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", nargs="?", type=Path, help="candump -L log")
+    parser.add_argument("log", nargs="*", type=Path,
+                        help="candump -L log(s), or a quoted glob ('logs/*.log')")
     parser.add_argument("--truth", type=Path,
                         help="truth CSV of the log (default LOG without .log + .truth.csv)")
     parser.add_argument("--suite", type=Path, metavar="DIR",
@@ -49,6 +57,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "SVG by suffix)")
     parser.add_argument("--plot-inputs", action="store_true",
                         help="a single log's plot also shows ay, yaw rate, steer and speed")
+    parser.add_argument("--dask", metavar="local[:N]|tcp://HOST:PORT",
+                        help="score one log per task on dask.distributed (a local cluster of "
+                             "N workers, or a running scheduler)")
+    parser.add_argument("--chunk-mb", type=float, default=None, metavar="MB",
+                        help="log text decoded per chunk (default 4)")
 
 
 def _methods(spec: str) -> list[str]:
@@ -69,24 +82,27 @@ def run(args: argparse.Namespace) -> int:
     cases = parse_cases(args.mismatch) if args.mismatch else []
     if not math.isfinite(args.min_speed) or args.min_speed < 0:
         raise ConfigError(f"--min-speed {args.min_speed}: expected a speed >= 0 km/h")
-    if args.suite is not None:
-        if args.log is not None:
-            raise ConfigError("give either a LOG or --suite DIR, not both")
-        logs = suite_logs(args.suite)
-    else:
-        if args.log is None:
-            raise ConfigError("name a LOG (with --truth TRUTH) or use --suite DIR")
-        logs = [LogCase(args.log.name, args.log, args.truth or truth_of(args.log))]
-    single_plot = args.plot is not None and args.suite is None and not cases
+    from slipd.commands.replay import _chunk_bytes
 
-    nominal, plot_data, single = evaluate_logs(logs, methods, load_profile(args.profile),
-                                               args.min_speed, keep_last=single_plot)
-    results = [nominal]
-    for case in cases:
-        print(f"mismatch {case.name}: {case.description}", file=sys.stderr)
-        perturbed = load_profile(args.profile, edit=case.edit())
-        results.append(evaluate_logs(logs, methods, perturbed, args.min_speed, case.name,
-                                     case.description)[0])
+    logs = _logs(args)
+    single_plot = args.plot is not None and len(logs) == 1 and args.suite is None and not cases
+    with contextlib.ExitStack() as stack:
+        client = None
+        if args.dask:
+            from slipd.replay.fleet import dask_client
+
+            client = stack.enter_context(dask_client(args.dask, methods, args.profile))
+        options = dict(client=client, profile_spec=args.profile,
+                       chunk_bytes=_chunk_bytes(args.chunk_mb))
+        nominal, plot_data, single = evaluate_logs(logs, methods, load_profile(args.profile),
+                                                   args.min_speed, keep_last=single_plot,
+                                                   **options)
+        results = [nominal]
+        for case in cases:
+            print(f"mismatch {case.name}: {case.description}", file=sys.stderr)
+            perturbed = load_profile(args.profile, edit=case.edit())
+            results.append(evaluate_logs(logs, methods, perturbed, args.min_speed, case.name,
+                                         case.description, **options)[0])
     mismatch_pooled = {m: Accumulator() for m in methods}
     for case in results[1:]:
         for m in methods:
@@ -104,7 +120,34 @@ def run(args: argparse.Namespace) -> int:
         _print_tables(args, logs, results, mismatch_pooled if cases else None, single)
     if args.plot is not None:
         _plot(args, logs, results, mismatch_pooled if cases else None, plot_data, single)
+    failed = {(case.name, log): error for case in results for log, error in case.failed.items()}
+    for (case, log), error in failed.items():
+        print(f"slipd eval: {log} ({case}) not scored: {error}", file=sys.stderr)
+    if failed:
+        print(f"slipd eval: {len({log for _, log in failed})} of {len(logs)} logs failed; the "
+              "pooled figures leave them out", file=sys.stderr)
+        return 1
     return 0
+
+
+def _logs(args: argparse.Namespace) -> list[LogCase]:
+    """The logs to score: --suite DIR's, or LOG... (globs expanded) with their truths."""
+    from slipd.replay.fleet import expand_logs
+
+    if args.suite is not None:
+        if args.log:
+            raise ConfigError("give either LOGs or --suite DIR, not both")
+        return suite_logs(args.suite)
+    if not args.log:
+        raise ConfigError("name a LOG (with --truth TRUTH) or use --suite DIR")
+    paths = expand_logs(args.log)
+    if args.truth is not None and len(paths) > 1:
+        raise ConfigError("--truth takes one log; several logs use their LOG.truth.csv")
+    names = [p.name for p in paths]
+    if len(set(names)) < len(names):  # the same file name in two folders: name by path
+        names = [str(p) for p in paths]
+    return [LogCase(name, p, args.truth or truth_of(p)) for name, p in zip(names, paths,
+                                                                          strict=True)]
 
 
 def _document(args, methods, logs, results: list[CaseResult], mismatch_pooled) -> dict:

@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from slipd.channels import Out, Status
+from slipd.eval.exact_sum import ExactSum
 
 KPH = 1.0 / 3.6
 
@@ -143,23 +144,24 @@ def _bins(abs_deg: np.ndarray) -> np.ndarray:
 
 
 class _ErrorStats:
-    """Count, sum of squares, maximum and histogram of |beta error| in degrees."""
+    """Count, sum of squares (exact: the same whatever pieces the ticks came in), maximum and
+    histogram of |beta error| in degrees."""
 
     __slots__ = ("n", "sq", "max", "hist")
 
     def __init__(self) -> None:
-        self.n, self.sq, self.max = 0, 0.0, 0.0
+        self.n, self.sq, self.max = 0, ExactSum(), 0.0
         self.hist = np.zeros(_HIST_BINS, dtype=np.int64)
 
     def add(self, abs_deg: np.ndarray) -> None:
         if abs_deg.size:
             self.n += int(abs_deg.size)
-            self.sq += float(np.dot(abs_deg, abs_deg))
+            self.sq.add(abs_deg * abs_deg)
             self.max = max(self.max, float(np.max(abs_deg)))
             self.hist += np.bincount(_bins(abs_deg), minlength=_HIST_BINS)
 
     def rms(self) -> float:
-        return math.sqrt(self.sq / self.n) if self.n else math.nan
+        return math.sqrt(self.sq.value() / self.n) if self.n else math.nan
 
     def percentile(self, q: float) -> float:
         if not self.n:
@@ -183,12 +185,14 @@ class _ErrorStats:
 class Accumulator:
     """The :class:`Scores` of one estimator accumulated over logs (or pieces of a log) in
     memory bounded by its histograms, never by the number of ticks: pooling a whole suite,
-    or every mismatch case of it, holds no per-tick array."""
+    or every mismatch case of it, holds no per-tick array. Its sums are exact, so the scores
+    do not depend on how the ticks were cut into pieces (a streamed log's chunks, a cluster's
+    tasks)."""
 
     def __init__(self) -> None:
         self.all = _ErrorStats()
         self.valid = _ErrorStats()
-        self.vx_n, self.vx_sq = 0, 0.0
+        self.vx_n, self.vx_sq = 0, ExactSum()
         self.window = 0
         self.has_validity = True
         self.over_2deg = self.over_5deg = self.covered = 0
@@ -201,7 +205,7 @@ class Accumulator:
         v = np.asarray(vx_err, dtype=np.float64)
         self.all.add(b)
         self.vx_n += int(v.size)
-        self.vx_sq += float(np.dot(v, v))
+        self.vx_sq.add(v * v)
         self.window += int(b.size if window is None else window)
         if valid is None:
             self.has_validity = self.has_sigma = False
@@ -231,11 +235,11 @@ class Accumulator:
         """Add another accumulator's ticks (e.g. pool the mismatch cases)."""
         for mine, theirs in ((self.all, other.all), (self.valid, other.valid)):
             mine.n += theirs.n
-            mine.sq += theirs.sq
+            mine.sq.merge(theirs.sq)
             mine.max = max(mine.max, theirs.max)
             mine.hist += theirs.hist
         self.vx_n += other.vx_n
-        self.vx_sq += other.vx_sq
+        self.vx_sq.merge(other.vx_sq)
         self.window += other.window
         self.has_validity &= other.has_validity
         self.has_sigma &= other.has_sigma
@@ -250,7 +254,7 @@ class Accumulator:
         figures = dict(
             beta_rms_deg=a.rms(), beta_max_deg=a.max if a.n else nan,
             beta_p99_deg=a.percentile(99.0),
-            vx_rms_mps=math.sqrt(self.vx_sq / self.vx_n) if self.vx_n else nan,
+            vx_rms_mps=math.sqrt(self.vx_sq.value() / self.vx_n) if self.vx_n else nan,
             samples=a.n,
         )
         if not self.has_validity:

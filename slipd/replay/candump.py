@@ -311,44 +311,58 @@ def read_candump(path: str | Path, skip_bad: bool = False) -> Frames:
     if not path.exists():
         raise LogFormatError(f"{path}: no such file")
     buf, mapped = _load_bytes(path)
+    error = None
     try:
-        n_lines = int(np.count_nonzero(buf == 10)) + 1
-        width = 8
-        while True:
-            t = np.zeros(n_lines)
-            ids = np.zeros(n_lines, dtype=np.int64)
-            flags = np.zeros(n_lines, dtype=np.uint8)
-            dlc = np.zeros(n_lines, dtype=np.uint8)
-            data = np.zeros((n_lines, width), dtype=np.uint8)
-            chan = np.zeros(n_lines, dtype=np.uint8)
-            chan_table = np.zeros((MAX_CHANNELS, 2), dtype=np.int64)
-            bad = np.zeros(100, dtype=np.int64)
-            fallback = np.zeros(n_lines, dtype=np.int64)
-            count, n_bad, err_line, err_code, n_chan, needed = _parse(
-                buf, width, skip_bad, t, ids, flags, dlc, data, chan, chan_table, bad, fallback)
-            if err_code:
-                line = bytes(_line_text(buf, err_line)).decode("utf-8", "replace")
-                raise LogFormatError(
-                    f"{path}:{err_line}: {ERROR_REASONS.get(err_code, 'malformed line')}: "
-                    f"{line!r} (use --skip-bad to count and skip such lines)"
-                )
-            if needed <= width:
-                break
-            width = 64
-        names = [bytes(buf[o:o + n]).decode("ascii", "replace") for o, n in chan_table[:n_chan]]
-        if fallback[:count].any():
-            line_starts = np.concatenate(([0], np.flatnonzero(buf == 10) + 1))
-            for index in np.flatnonzero(fallback[:count]):
-                t[index] = _python_timestamp(buf, line_starts, int(fallback[index]))
-        frames = Frames(t[:count], ids[:count], flags[:count], dlc[:count], data[:count],
-                        chan[:count], names, str(path), int(n_bad),
-                        [int(x) for x in bad[:min(n_bad, 100)]])
-        _error_frame_fixups(frames)
-        return frames
+        return parse_candump(buf, str(path), skip_bad)
+    except LogFormatError as exc:  # a fresh one: the parser's frame holds the mapped buffer
+        error = LogFormatError(str(exc))
     finally:
         del buf
         if mapped is not None:
             mapped.close()
+    raise error
+
+
+def parse_candump(buf: np.ndarray, source: str, skip_bad: bool = False,
+                  first_line: int = 1) -> Frames:
+    """The frames of the whole ``candump -L`` lines in ``buf`` (uint8). ``first_line`` is the
+    line number of ``buf``'s first line in ``source`` (a piece of a longer log, read in
+    chunks by slipd.replay.stream), so errors and skipped lines name the log's own lines.
+    Channel indices are this piece's own, in order of first appearance."""
+    n_lines = int(np.count_nonzero(buf == 10)) + 1
+    width = 8
+    shift = first_line - 1
+    while True:
+        t = np.zeros(n_lines)
+        ids = np.zeros(n_lines, dtype=np.int64)
+        flags = np.zeros(n_lines, dtype=np.uint8)
+        dlc = np.zeros(n_lines, dtype=np.uint8)
+        data = np.zeros((n_lines, width), dtype=np.uint8)
+        chan = np.zeros(n_lines, dtype=np.uint8)
+        chan_table = np.zeros((MAX_CHANNELS, 2), dtype=np.int64)
+        bad = np.zeros(100, dtype=np.int64)
+        fallback = np.zeros(n_lines, dtype=np.int64)
+        count, n_bad, err_line, err_code, n_chan, needed = _parse(
+            buf, width, skip_bad, t, ids, flags, dlc, data, chan, chan_table, bad, fallback)
+        if err_code:
+            line = bytes(_line_text(buf, err_line)).decode("utf-8", "replace")
+            raise LogFormatError(
+                f"{source}:{err_line + shift}: {ERROR_REASONS.get(err_code, 'malformed line')}: "
+                f"{line!r} (use --skip-bad to count and skip such lines)"
+            )
+        if needed <= width:
+            break
+        width = 64
+    names = [bytes(buf[o:o + n]).decode("ascii", "replace") for o, n in chan_table[:n_chan]]
+    if fallback[:count].any():
+        line_starts = np.concatenate(([0], np.flatnonzero(buf == 10) + 1))
+        for index in np.flatnonzero(fallback[:count]):
+            t[index] = _python_timestamp(buf, line_starts, int(fallback[index]))
+    frames = Frames(t[:count], ids[:count], flags[:count], dlc[:count], data[:count],
+                    chan[:count], names, source, int(n_bad),
+                    [int(x) + shift for x in bad[:min(n_bad, 100)]])
+    _error_frame_fixups(frames)
+    return frames
 
 
 def _line_text(buf: np.ndarray, line_no: int) -> np.ndarray:
@@ -441,11 +455,12 @@ def _format(micros, frame_id, flags, dlc, data, chan, chan_bytes, chan_offsets, 
 def write_candump(path: str | Path, t: np.ndarray, frame_id: np.ndarray, data: np.ndarray,
                   dlc: np.ndarray | None = None, interface: str = "can0",
                   flags: np.ndarray | None = None, channel: np.ndarray | None = None,
-                  channels: list[str] | None = None) -> int:
+                  channels: list[str] | None = None, append: bool = False) -> int:
     """Write frames as ``candump -L`` lines; timestamps are rounded to microseconds.
 
     ``channel``/``channels`` give a per-frame interface name (default: ``interface``).
-    Without ``flags``, frames longer than 8 bytes are written as CAN FD frames.
+    Without ``flags``, frames longer than 8 bytes are written as CAN FD frames. ``append``
+    adds the lines to an existing file (a streaming replay writes chunk by chunk).
     Returns the number of lines written.
     """
     n = len(t)
@@ -466,5 +481,6 @@ def write_candump(path: str | Path, t: np.ndarray, frame_id: np.ndarray, data: n
     out = np.empty(n * (40 + longest + 2 * 64 + 4), dtype=np.uint8)
     used = _format(micros, np.asarray(frame_id, np.int64), flags, dlc, data, chan,
                    chan_bytes, chan_offsets, out)
-    Path(path).write_bytes(out[:used].tobytes())
+    with open(path, "ab" if append else "wb") as handle:
+        handle.write(out[:used].data)
     return n

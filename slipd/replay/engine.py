@@ -84,9 +84,31 @@ def frame_buses(frames: Frames, codec: Codec, bus_map: dict[str, str] | None = N
     one bus (their counters and latches would mix), so an ambiguous log is an error that names
     the channels.
     """
-    buses = codec.inputs.buses
     names = list(frames.channels)
+    carrying = _channels_carrying(frames, codec) if _reads_carrying(codec, bus_map, names) \
+        else []
+    chosen = channel_buses(names, carrying, codec, bus_map, frames.source, len(frames) > 0)
     result = np.full(len(frames), -1, dtype=np.int64)
+    for channel, bus in chosen.items():
+        result[frames.channel == names.index(channel)] = bus
+    return result
+
+
+def _reads_carrying(codec: Codec, bus_map: dict[str, str] | None, names: list[str]) -> bool:
+    """Whether the bus choice looks at which channels carry the profile's frames (a one-bus
+    profile, no --bus, no log channel named like the bus)."""
+    buses = codec.inputs.buses
+    return not bus_map and len(buses) == 1 and buses[0] not in names
+
+
+def channel_buses(names: list[str], carrying: list[str], codec: Codec,
+                  bus_map: dict[str, str] | None, source: str, has_frames: bool,
+                  complete: bool = True) -> dict[str, int]:
+    """{log channel name: profile bus index} (:func:`frame_buses`'s rule) from the log's
+    channel names and those that carry frames of the profile's input IDs. ``complete=False``:
+    the log has been read only in part (a streaming replay), so a channel or bus not seen yet
+    is not an error yet."""
+    buses = codec.inputs.buses
     if bus_map:
         unknown = sorted(set(bus_map) - set(buses))
         if unknown:
@@ -96,38 +118,41 @@ def frame_buses(frames: Frames, codec: Codec, bus_map: dict[str, str] | None = N
     else:
         chosen = {bus: bus for bus in buses if bus in names}
     if len(buses) == 1 and buses[0] not in chosen:
-        carrying = _channels_carrying(frames, codec)
         if len(carrying) > 1:
             raise ConfigError(
-                f"{frames.source}: channels {carrying} all carry frames of profile "
+                f"{source}: channels {carrying} all carry frames of profile "
                 f"{codec.profile.name}'s bus {buses[0]!r}; name the one to read: "
                 f"--bus {buses[0]}={carrying[0]}")
         if len(names) == 1 or carrying:
             chosen[buses[0]] = carrying[0] if carrying else names[0]
     missing = [bus for bus in buses if bus not in chosen and bus in codec.profile.buses
                and any(codec.inputs.bus(m) == bus for m in codec.inputs.message_names)]
-    if missing and len(frames):
+    if complete and missing and has_frames:
         raise ConfigError(
-            f"{frames.source}: no log channel for bus(es) {missing} of profile "
+            f"{source}: no log channel for bus(es) {missing} of profile "
             f"{codec.profile.name}; the log's channels are {names}: map them with "
             f"--bus {missing[0]}=CHANNEL")
+    result = {}
     for bus, channel in chosen.items():
         if channel not in names:
-            if bus_map:
-                raise ConfigError(f"--bus {bus}={channel}: {frames.source} has no channel "
+            if bus_map and complete:
+                raise ConfigError(f"--bus {bus}={channel}: {source} has no channel "
                                   f"{channel!r}; its channels: {names}")
             continue
-        result[frames.channel == names.index(channel)] = buses.index(bus)
+        result[channel] = buses.index(bus)
     return result
 
 
-def _channels_carrying(frames: Frames, codec: Codec) -> list[str]:
-    """Log channels with at least one frame of an input ID of the profile."""
+def _channels_carrying(frames: Frames, codec: Codec, skip: set[str] = frozenset()
+                       ) -> list[str]:
+    """Log channels (but ``skip``) with at least one frame of an input ID of the profile."""
     known = {(codec.inputs.frame_id(n), codec.inputs.is_extended(n))
              for n in codec.inputs.message_names}
     extended = (frames.flags & 1) != 0
     result = []
     for index, name in enumerate(frames.channels):
+        if name in skip:
+            continue
         on = frames.channel == index
         if any(np.any(on & (frames.frame_id == fid) & (extended == ext)) for fid, ext in known):
             result.append(name)

@@ -2,7 +2,17 @@
 
 Every writer is fed in chunks (:meth:`EstimateWriter.write` takes any run of one method's
 ticks, :meth:`~EstimateWriter.write_inputs` any run of the latched inputs), so a streaming
-replay can hand them a minute of ticks at a time; :func:`write_estimates` writes a whole run.
+replay hands them a chunk of ticks at a time; :func:`write_estimates` writes a whole run. A
+writer writes FILE's hidden sibling ``.STEM.partial.SUFFIX`` and renames it to FILE when it
+closes, so a replay that fails half-way leaves no file that looks complete (``abort``, or
+leaving the ``with`` block on an exception, removes it).
+
+The tables (CSV, Parquet) hold one method's rows after another's, in the order the methods
+were first written, however the rows were handed in: the first method's rows go straight to
+the file, the others' wait in hidden spill files beside it (CSV text, Arrow IPC with zstd) that
+``close`` appends. Parquet row groups hold ROW_GROUP_TICKS rows of one method each (a method's
+last group fewer), each written from contiguous arrays. So a streamed run and a whole-run
+write give the same bytes (tests/test_stream.py).
 
 * ``.csv``: plain (one header row, ``pandas.read_csv`` with defaults reads it), the table of
   :data:`TABLE_COLUMNS` in degrees as ``slipd replay`` always wrote; what it is (units, status
@@ -21,6 +31,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,8 +41,11 @@ import numpy as np
 from slipd.channels import N_IN, OUT_UNITS, VALID, In, Out, Status
 from slipd.errors import ConfigError, DependencyError
 from slipd.profile_tools.decode import unit_of
+from slipd.replay import textformat
 
 DEG = 180.0 / math.pi
+#: rows of a Parquet row group (22 minutes of one method's ticks, ~10 MB in memory)
+ROW_GROUP_TICKS = 1 << 17
 
 #: The replay table (CSV, Parquet): name -> (Out column or None, scale from SI, unit).
 TABLE_COLUMNS: dict[str, tuple[Out | None, float, str]] = {
@@ -94,11 +109,15 @@ class RunInfo:
 class EstimateWriter:
     """Base of the writers: ``write`` a method's chunk, ``write_inputs`` a chunk of latched
     inputs (t [n], U [n, U_LEN]), ``write_truth`` the truth columns (``t`` on the log's time
-    axis plus SI columns), then ``close``. A context manager."""
+    axis plus SI columns), then ``close`` (or ``abort``). A context manager: an exception
+    inside the block aborts. Subclasses write ``self.partial``; ``close`` renames it to
+    ``self.path``."""
 
     def __init__(self, path: Path, info: RunInfo):
         self.path = Path(path)
         self.info = info
+        self.partial = partial_path(self.path)
+        self._finished = False
 
     def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
         raise NotImplementedError
@@ -110,13 +129,65 @@ class EstimateWriter:
         """Table formats hold estimates only."""
 
     def close(self) -> None:
-        pass
+        """Finish the file (subclasses first complete ``self.partial``) and put it in place."""
+        if self._finished:
+            return
+        self._finished = True
+        try:
+            os.replace(self.partial, self.path)
+        except OSError as exc:
+            raise ConfigError(f"--out {self.path}: cannot write: {exc.strerror or exc}"
+                              ) from exc
+
+    def abort(self) -> None:
+        """Drop what was written (a replay that failed): no file appears at ``path``."""
+        self._finished = True
+        self._discard()
+        self.partial.unlink(missing_ok=True)
+
+    def _discard(self) -> None:
+        """Close open handles without finishing the file (subclasses)."""
 
     def __enter__(self) -> EstimateWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, kind, value, traceback) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def partial_path(path: Path) -> Path:
+    """Where a writer writes ``path`` until it closes: ``.STEM.partial.SUFFIX`` beside it
+    (hidden; the suffix kept, as asammdf insists on it)."""
+    path = Path(path)
+    return path.with_name(f".{path.stem}.partial{path.suffix}")
+
+
+class _MethodOrder:
+    """The first method written goes to the file; every other one to a spill file beside it,
+    appended at close in the order the methods first came (see the module docstring)."""
+
+    def __init__(self, path: Path, suffix: str):
+        self.path, self.suffix = path, suffix
+        self.direct: str | None = None
+        self.spills: dict[str, Path] = {}
+
+    def is_direct(self, method: str) -> bool:
+        if self.direct is None:
+            self.direct = method
+        return method == self.direct
+
+    def spill_path(self, method: str) -> Path:
+        if method not in self.spills:
+            self.spills[method] = self.path.with_name(
+                f".{self.path.stem}.spill{len(self.spills)}{self.suffix}")
+        return self.spills[method]
+
+    def remove(self) -> None:
+        for spill in self.spills.values():
+            spill.unlink(missing_ok=True)
 
 
 def _table_values(t: np.ndarray, out: np.ndarray) -> dict[str, np.ndarray]:
@@ -137,31 +208,57 @@ def _open(path: Path, mode: str):
 
 
 class CsvWriter(EstimateWriter):
-    """Plain CSV, one header row; FILE.csv.meta.json describes it."""
+    """Plain CSV, one header row; FILE.csv.meta.json describes it. The text is written by
+    ``textformat.format_rows`` (numba): the bytes Python's ``f"{x:.5f}"`` gives."""
+
+    #: digits after the point per TABLE_COLUMNS column but ``estimator`` (INTEGER: whole)
+    DECIMALS = np.array([6, 5, 4, 4, 4, 4 + textformat.EMPTY_IF_NAN, 5, 4, textformat.INTEGER,
+                         textformat.INTEGER], dtype=np.int64)
 
     def __init__(self, path: Path, info: RunInfo):
         super().__init__(path, info)
-        self._handle = _open(self.path, "w")
-        self._handle.write(",".join(TABLE_COLUMNS) + "\n")
-        meta = {**info.as_dict(), "format": "slipd estimates, one row per 10 ms tick and method",
-                "columns": {n: {"unit": u, "description": _describe(n)}
-                            for n, (_, _, u) in TABLE_COLUMNS.items()}}
-        sidecar_of(self.path).write_text(json.dumps(meta, indent=2) + "\n")
+        self._handle = _open(self.partial, "wb")
+        self._handle.write((",".join(TABLE_COLUMNS) + "\n").encode())
+        self._order = _MethodOrder(self.path, ".csv")
+        self._spills: dict[str, object] = {}
 
     def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
         c = _table_values(t, out)
-        handle = self._handle
-        for k in range(len(t)):
-            mu = c["mu"][k]
-            mu_text = "" if math.isnan(mu) else f"{mu:.4f}"
-            handle.write(
-                f"{c['t'][k]:.6f},{method},{c['beta_deg'][k]:.5f},{c['beta_rate_deg_s'][k]:.4f},"
-                f"{c['vx_mps'][k]:.4f},{c['vy_mps'][k]:.4f},{mu_text},"
-                f"{c['sigma_beta_deg'][k]:.5f},{c['roll_deg'][k]:.4f},"
-                f"{int(c['friction_class'][k])},{int(c['status'][k])}\n")
+        values = np.column_stack([c[name] for name in TABLE_COLUMNS if name != "estimator"])
+        text = textformat.format_csv(values, self.DECIMALS, method, text_at=1)
+        if self._order.is_direct(method):
+            self._handle.write(text)
+            return
+        if method not in self._spills:
+            self._spills[method] = _open(self._order.spill_path(method), "w+b")
+        self._spills[method].write(text)
 
     def close(self) -> None:
+        if self._finished:
+            return
+        try:
+            for spill in self._spills.values():
+                spill.seek(0)
+                shutil.copyfileobj(spill, self._handle, 1 << 22)
+                spill.close()
+            self._handle.close()
+            meta = {**self.info.as_dict(),
+                    "format": "slipd estimates, one row per 10 ms tick and method",
+                    "columns": {n: {"unit": u, "description": _describe(n)}
+                                for n, (_, _, u) in TABLE_COLUMNS.items()}}
+            sidecar = sidecar_of(self.path)
+            partial = partial_path(sidecar)
+            partial.write_text(json.dumps(meta, indent=2) + "\n")
+            os.replace(partial, sidecar)
+        finally:
+            self._order.remove()
+        super().close()
+
+    def _discard(self) -> None:
+        for spill in self._spills.values():
+            spill.close()
         self._handle.close()
+        self._order.remove()
 
 
 def sidecar_of(path: Path) -> Path:
@@ -170,7 +267,8 @@ def sidecar_of(path: Path) -> Path:
 
 
 class ParquetWriter(EstimateWriter):
-    """Parquet (zstd) by row groups: units in the field metadata, the run in the schema's."""
+    """Parquet (zstd) by row groups of ROW_GROUP_TICKS rows: units in the field metadata, the
+    run in the schema's."""
 
     def __init__(self, path: Path, info: RunInfo):
         super().__init__(path, info)
@@ -189,11 +287,15 @@ class ParquetWriter(EstimateWriter):
         self.schema = pa.schema(fields, metadata={"slipd": json.dumps(info.as_dict())})
         self._dictionary = pa.array(list(info.methods), type=pa.string())
         try:
-            self._writer = pq.ParquetWriter(str(self.path), self.schema, compression="zstd")
+            self._writer = pq.ParquetWriter(str(self.partial), self.schema, compression="zstd")
         except OSError as exc:
             raise ConfigError(f"--out {path}: cannot write: {exc}") from exc
+        self._order = _MethodOrder(self.path, ".arrows")
+        self._spills: dict[str, object] = {}
+        self._waiting: list = []  # tables of the current method not yet in a row group
+        self._waiting_rows = 0
 
-    def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
+    def _table(self, method: str, t: np.ndarray, out: np.ndarray):
         pa = self._pa
         columns = _table_values(t, out)
         index = self.info.methods.index(method)
@@ -204,10 +306,70 @@ class ParquetWriter(EstimateWriter):
                     pa.array(np.full(len(t), index, dtype=np.int32)), self._dictionary))
             else:
                 arrays.append(pa.array(columns[f.name], type=f.type, from_pandas=f.name == "mu"))
-        self._writer.write_table(pa.Table.from_arrays(arrays, schema=self.schema))
+        return pa.Table.from_arrays(arrays, schema=self.schema)
+
+    def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
+        if not len(t):
+            return
+        table = self._table(method, t, out)
+        if self._order.is_direct(method):
+            self._add(table)
+            return
+        if method not in self._spills:
+            path = self._order.spill_path(method)
+            options = self._pa.ipc.IpcWriteOptions(compression="zstd")
+            self._spills[method] = self._pa.ipc.new_stream(str(path), self.schema,
+                                                            options=options)
+        self._spills[method].write_table(table)
+
+    def _add(self, table) -> None:
+        """Rows of the current method: full row groups are written as they fill."""
+        self._waiting.append(table)
+        self._waiting_rows += table.num_rows
+        while self._waiting_rows >= ROW_GROUP_TICKS:
+            self._write_group(ROW_GROUP_TICKS)
+
+    def _write_group(self, rows: int) -> None:
+        waiting = self._pa.concat_tables(self._waiting)
+        self._writer.write_table(waiting.slice(0, rows).combine_chunks(),
+                                 row_group_size=ROW_GROUP_TICKS)
+        rest = waiting.slice(rows)
+        self._waiting = [rest] if rest.num_rows else []
+        self._waiting_rows = rest.num_rows
+
+    def add_metadata(self, metadata: dict[str, str]) -> None:
+        """More key-value metadata in the file's footer (known only at the end, e.g. the
+        log's SHA-256); ``pq.read_schema(FILE).metadata`` has it with the schema's."""
+        self._writer.add_key_value_metadata(metadata)
+
+    def _end_method(self) -> None:
+        if self._waiting_rows:
+            self._write_group(self._waiting_rows)
 
     def close(self) -> None:
+        if self._finished:
+            return
+        try:
+            self._end_method()
+            for method, spill in self._spills.items():
+                spill.close()
+                # a NativeFile, not the path: open_stream memory-maps a path, and the pages
+                # of a spill read back count in the RSS (a 24 h log's spills are GBs)
+                with self._pa.OSFile(str(self._order.spills[method]), "rb") as file, \
+                        self._pa.ipc.open_stream(file) as reader:
+                    for batch in reader:
+                        self._add(self._pa.Table.from_batches([batch]))
+                self._end_method()
+            self._writer.close()
+        finally:
+            self._order.remove()
+        super().close()
+
+    def _discard(self) -> None:
+        for spill in self._spills.values():
+            spill.close()
         self._writer.close()
+        self._order.remove()
 
 
 def _json_schema(title: str, properties: dict[str, tuple[str, str, str]]) -> bytes:
@@ -229,7 +391,7 @@ class McapWriter(EstimateWriter):
         except ImportError as exc:
             raise DependencyError("--out FILE.mcap needs mcap: pip install 'slipd[mcap]'"
                                   ) from exc
-        self._handle = _open(self.path, "wb")
+        self._handle = _open(self.partial, "wb")
         self._writer = Writer(self._handle)
         self._writer.start(profile="", library="slipd")
         self._writer.add_metadata("slipd", {k: json.dumps(v) if not isinstance(v, str) else v
@@ -316,7 +478,13 @@ class McapWriter(EstimateWriter):
                        np.column_stack([np.asarray(columns[n], dtype=np.float64) for n in names]))
 
     def close(self) -> None:
+        if self._finished:
+            return
         self._writer.finish()
+        self._handle.close()
+        super().close()
+
+    def _discard(self) -> None:
         self._handle.close()
 
 
@@ -390,12 +558,18 @@ class Mf4Writer(EstimateWriter):
         self._put("truth", columns["t"], signals, "reference sensor (truth)")
 
     def close(self) -> None:
+        if self._finished:
+            return
         try:
-            self._mdf.save(self.path, overwrite=True)
+            self._mdf.save(self.partial, overwrite=True)
         except OSError as exc:
             raise ConfigError(f"--out {self.path}: cannot write: {exc}") from exc
         finally:
             self._mdf.close()
+        super().close()
+
+    def _discard(self) -> None:
+        self._mdf.close()
 
 
 #: suffix -> writer

@@ -1,0 +1,435 @@
+"""Many logs on a Dask cluster: one task per log, results in a partitioned Parquet dataset.
+
+``slipd replay LOG... --dask local[:N] | tcp://SCHEDULER:8786 --out DIR`` (and ``slipd eval
+LOG... --dask ...``) hands each log to dask.distributed as one task; slipd grows no scheduler
+of its own. A log is one task, never split: every method's state runs through the log in
+order (the streaming engine carries it from chunk to chunk on one worker), so a piece of a
+log could only start from a state nobody has yet. What a run writes::
+
+    DIR/estimates/log=KEY/part-0.parquet   one partition per log: the replay table (the
+                                           columns of slipd replay --out FILE.parquet); its
+                                           file metadata b"slipd_log": the log's record
+    DIR/summary.parquet                    one row per log (done, skipped by --resume, failed)
+
+KEY is the log's path relative to the logs' common folder without its suffix (URI-escaped in
+the folder name, as pyarrow's hive partitioning expects: ``pandas.read_parquet(DIR /
+"estimates")`` has a ``log`` column). A log's record (:data:`RECORD_FIELDS`): its path, size,
+modification time and SHA-256, the profile (name, as given, and a SHA-256 of its TOML and
+DBC), the methods, frames, ticks, skipped lines, rejected frames, the VALID share of each
+method, the seconds it took and where (with that worker's peak RSS), and its status and error.
+
+A partition is written to a hidden file and renamed when complete, so an interrupted run
+leaves only whole partitions; ``--resume`` skips each log whose partition records the same
+path, size, modification time, profile, methods and options. A log that fails (a malformed
+line, a worker that died) is a summary row with its error; the others finish, and the command
+exits 1.
+
+Workers need slipd installed (and the logs and a profile path at the same place); each warms
+numba's keyed cache (slipd.numba_cache) and the run's kernels once, through a worker plugin,
+before its first task.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import socket
+import sys
+import time
+import urllib.parse
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from slipd.errors import ConfigError, SlipdError
+
+ESTIMATES = "estimates"
+SUMMARY = "summary.parquet"
+PART = "part-0.parquet"
+#: schema metadata key of a partition's record
+RECORD_KEY = "slipd_log"
+LOG_SUFFIXES = (".log", ".candump", ".asc", ".blf", ".trc", ".mf4", ".csv")
+#: a --resume decision compares these fields of the record
+SAME_RUN = ("log", "size_bytes", "mtime_ns", "profile", "profile_sha256", "methods",
+            "options")
+
+
+# ---------------------------------------------------------------------------------------------
+# the cluster
+# ---------------------------------------------------------------------------------------------
+
+
+def parse_dask(spec: str) -> tuple[str, int | str]:
+    """``local`` (a worker per CPU), ``local:N`` or a scheduler address (``tcp://HOST:PORT``,
+    ``tls://...``, ``HOST:PORT``) -> ("local", N) or ("address", address)."""
+    spec = spec.strip()
+    if spec == "local" or spec.startswith("local:"):
+        count = spec.partition(":")[2] or str(os.cpu_count() or 1)
+        if not count.isdigit() or int(count) < 1:
+            raise ConfigError(f"--dask {spec}: expected local, local:N (N >= 1 workers) or a "
+                              "scheduler address such as tcp://HOST:8786")
+        return "local", int(count)
+    if "://" in spec or ":" in spec:
+        return "address", spec
+    raise ConfigError(f"--dask {spec}: expected local, local:N or a scheduler address such as "
+                      "tcp://HOST:8786")
+
+
+@contextlib.contextmanager
+def dask_client(spec: str, methods: list[str], profile: str) -> Iterator:
+    """A dask.distributed Client for ``--dask SPEC`` (a local cluster of single-threaded
+    worker processes on 127.0.0.1, or the scheduler at an address), with the kernel warm-up
+    registered on every worker."""
+    try:
+        from distributed import Client, LocalCluster
+
+        from slipd.replay.dask_worker import KernelWarmup
+    except ImportError as exc:
+        from slipd.errors import DependencyError
+
+        raise DependencyError("--dask needs dask.distributed: pip install 'slipd[dask]'"
+                              ) from exc
+    kind, value = parse_dask(spec)
+    cluster = None
+    try:
+        if kind == "local":
+            cluster = LocalCluster(n_workers=int(value), threads_per_worker=1, processes=True,
+                                   host="127.0.0.1", dashboard_address=None,
+                                   silence_logs=40)
+            client = Client(cluster)
+        else:
+            client = Client(str(value), timeout=30)
+    except OSError as exc:
+        if cluster is not None:
+            cluster.close()
+        raise ConfigError(f"--dask {spec}: cannot reach the scheduler: {exc}") from exc
+    try:
+        client.register_plugin(KernelWarmup(methods, profile), name="slipd-kernels")
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def run_tasks(client, function: Callable, items: list, names: list[str],
+              progress: bool = True) -> list[tuple[object, BaseException | None]]:
+    """``function(item)`` for every item as dask tasks (one each, ``names`` in their keys);
+    returns (result, None) or (None, exception) per item, in the items' order. Shows dask's
+    progress bar on stderr when it is a terminal."""
+    if not items:
+        return []
+    stamp = time.time_ns()
+    keys = [f"slipd-{_slug(name)}-{stamp}-{k}" for k, name in enumerate(names)]
+    futures = [client.submit(function, item, key=key, pure=False)
+               for item, key in zip(items, keys, strict=True)]
+    if progress and sys.stderr.isatty():
+        from distributed import progress as progress_bar
+
+        with contextlib.redirect_stdout(sys.stderr):
+            progress_bar(futures)
+            print(file=sys.stderr)
+    results = []
+    for future in futures:
+        try:
+            results.append((future.result(), None))
+        except Exception as exc:  # noqa: BLE001 - a worker's failure is the log's error
+            results.append((None, exc))
+    return results
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in text)[:40]
+
+
+# ---------------------------------------------------------------------------------------------
+# one log
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LogJob:
+    """What a task needs to replay one log into its partition."""
+
+    log: str
+    key: str
+    out_dir: str | None
+    profile: str
+    profile_sha256: str
+    methods: tuple[str, ...]
+    skip_bad: bool = False
+    bus_map: tuple[tuple[str, str], ...] = ()
+    chunk_bytes: int | None = None
+
+    @property
+    def options(self) -> str:
+        return json.dumps({"skip_bad": self.skip_bad, "bus": dict(self.bus_map)},
+                          sort_keys=True)
+
+
+@dataclass
+class LogRecord:
+    """A log's row of the summary (and its partition's metadata)."""
+
+    log: str
+    key: str
+    size_bytes: int = -1
+    mtime_ns: int = -1
+    sha256: str = ""
+    profile: str = ""
+    profile_name: str = ""
+    profile_sha256: str = ""
+    methods: str = ""
+    options: str = ""
+    frames: int = 0
+    ticks: int = 0
+    bad_lines: int = 0
+    rejected_frames: int = 0
+    valid_share: dict[str, float] = field(default_factory=dict)
+    seconds: float = 0.0
+    worker: str = ""
+    #: the worker process's peak RSS so far (MB) when the log was done
+    peak_rss_mb: float = 0.0
+    status: str = "ok"  # ok | skipped (--resume: done before) | failed
+    error: str = ""
+    partition: str = ""
+
+    def as_json(self) -> str:
+        return json.dumps(asdict(self), sort_keys=True)
+
+
+RECORD_FIELDS = tuple(LogRecord.__dataclass_fields__)
+
+
+def profile_sha256(profile) -> str:
+    """SHA-256 (16 hex digits) of a profile's TOML and its DBC."""
+    digest = hashlib.sha256()
+    for path in (profile.path, profile.dbc_path):
+        digest.update(Path(path).read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def replay_log(job: LogJob) -> LogRecord:
+    """Stream one log through the methods into its partition (when the job has an out_dir);
+    never raises for the log's own faults: they are the record's error."""
+    started = time.perf_counter()
+    path = Path(job.log)
+    record = LogRecord(job.log, job.key, profile=job.profile, methods=",".join(job.methods),
+                       options=job.options, worker=f"{socket.gethostname()}:{os.getpid()}")
+    try:
+        stat = path.stat()
+        record.size_bytes, record.mtime_ns = stat.st_size, stat.st_mtime_ns
+        _replay_into(job, record, started)
+    except SlipdError as exc:
+        record.status, record.error = "failed", str(exc)
+    except FileNotFoundError as exc:
+        record.status, record.error = "failed", f"{path}: no such file ({exc.strerror})"
+    except Exception as exc:  # noqa: BLE001 - the batch goes on; the row says what happened
+        record.status, record.error = "failed", f"{type(exc).__name__}: {exc}"
+    record.seconds = round(time.perf_counter() - started, 3)
+    record.peak_rss_mb = _peak_rss_mb()
+    return record
+
+
+def _peak_rss_mb() -> float:
+    import resource
+
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+
+
+def _replay_into(job: LogJob, record: LogRecord, started: float) -> None:
+    import numpy as np
+
+    from slipd.channels import Out, Status
+    from slipd.profile import load_profile
+    from slipd.replay.stream import CHUNK_BYTES, LogStream
+    from slipd.replay.writers import ParquetWriter, RunInfo
+
+    profile = load_profile(job.profile)
+    record.profile_name = profile.name
+    record.profile_sha256 = profile_sha256(profile)
+    if job.profile_sha256 and record.profile_sha256 != job.profile_sha256:
+        raise ConfigError(f"profile {job.profile} on {socket.gethostname()} differs from the "
+                          f"one the run was started with (SHA-256 {record.profile_sha256} != "
+                          f"{job.profile_sha256})")
+    methods = list(job.methods)
+    stream = LogStream(job.log, profile, methods, job.skip_bad, dict(job.bus_map) or None,
+                       job.chunk_bytes or CHUNK_BYTES, checksum=True)
+    writer = None
+    target = None
+    if job.out_dir is not None:
+        target = partition_path(Path(job.out_dir), job.key)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        writer = ParquetWriter(target, RunInfo(methods, profile.name, job.log))
+    valid = dict.fromkeys(methods, 0)
+    try:
+        for chunk in stream:
+            for name in methods:
+                out = chunk.outputs[name]
+                if writer is not None:
+                    writer.write(name, chunk.inputs.t, out)
+                status = out[:, Out.STATUS].astype(np.int64)
+                valid[name] += int(np.count_nonzero(status & int(Status.VALID)))
+        read = stream.read
+        record.sha256 = read.sha256
+        record.frames, record.ticks = read.frames, stream.ticks
+        record.bad_lines = read.bad_lines
+        record.rejected_frames = sum(v for counts in stream.errors.values()
+                                     for k, v in counts.items() if k != "accepted")
+        record.valid_share = {m: round(v / stream.ticks, 6) if stream.ticks else 0.0
+                              for m, v in valid.items()}
+        if writer is not None:
+            record.partition = str(target)
+            record.seconds = round(time.perf_counter() - started, 3)
+            record.peak_rss_mb = _peak_rss_mb()
+            writer.add_metadata({RECORD_KEY: record.as_json()})
+            writer.close()
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+            with contextlib.suppress(OSError):
+                target.parent.rmdir()  # the log's partition folder, when it holds nothing
+        raise
+
+
+def partition_path(out_dir: Path, key: str) -> Path:
+    return out_dir / ESTIMATES / f"log={urllib.parse.quote(key, safe='')}" / PART
+
+
+def log_keys(logs: list[Path]) -> list[str]:
+    """Each log's partition key: its path relative to the logs' common folder, without the
+    log suffixes (``carA/day1`` for ``/data/carA/day1.log.gz``)."""
+    resolved = [p.resolve() for p in logs]
+    root = Path(os.path.commonpath([str(p.parent) for p in resolved])) if resolved else Path()
+    keys = []
+    for path in resolved:
+        relative = path.relative_to(root).as_posix()
+        name = relative
+        for suffix in (".gz", *LOG_SUFFIXES):
+            name = name.removesuffix(suffix) if name.endswith(suffix) else name
+        keys.append(name or relative)
+    duplicates = {k for k in keys if keys.count(k) > 1}
+    if duplicates:
+        keys = [Path(p).relative_to(root).as_posix() for p in resolved]
+    return keys
+
+
+def expand_logs(patterns: Iterable[str | Path]) -> list[Path]:
+    """Log paths from the command line: a path, or a glob pattern (``'logs/**/*.log'``,
+    quoted so the shell leaves it to slipd) expanded in sorted order; a pattern that matches
+    nothing is an error naming it."""
+    import glob
+
+    found: list[Path] = []
+    for pattern in patterns:
+        text = str(pattern)
+        if any(c in text for c in "*?[") and not Path(text).exists():
+            matches = sorted(glob.glob(text, recursive=True))
+            if not matches:
+                raise ConfigError(f"{text}: no log matches this pattern")
+            found += [Path(m) for m in matches]
+        else:
+            found.append(Path(text))
+    unique = list(dict.fromkeys(found))
+    return unique
+
+
+# ---------------------------------------------------------------------------------------------
+# the run
+# ---------------------------------------------------------------------------------------------
+
+
+def done_before(job: LogJob) -> LogRecord | None:
+    """The record of ``job``'s partition when it holds this very run of this log (--resume)."""
+    if job.out_dir is None:
+        return None
+    target = partition_path(Path(job.out_dir), job.key)
+    if not target.exists():
+        return None
+    try:
+        import pyarrow.parquet as pq
+
+        meta = pq.read_metadata(target).metadata or {}
+        record = LogRecord(**json.loads(meta[RECORD_KEY.encode()]))
+        stat = Path(job.log).stat()
+    except (OSError, KeyError, ValueError, TypeError):
+        return None
+    now = {"log": job.log, "size_bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns,
+           "profile": job.profile, "profile_sha256": job.profile_sha256,
+           "methods": ",".join(job.methods), "options": job.options}
+    if any(getattr(record, name) != now[name] for name in SAME_RUN):
+        return None
+    record.status = "skipped"
+    return record
+
+
+def run_fleet(logs: list[Path], profile: str, methods: list[str], out_dir: Path | None,
+              client=None, skip_bad: bool = False, bus_map: dict[str, str] | None = None,
+              chunk_bytes: int | None = None, resume: bool = False,
+              progress: bool = True) -> list[LogRecord]:
+    """Replay ``logs`` (one task each on ``client``'s cluster; None: here, one after the
+    other) into ``out_dir``'s dataset and summary; returns the records in the logs' order."""
+    from slipd.profile import load_profile
+
+    loaded = load_profile(profile)
+    fingerprint = profile_sha256(loaded)
+    keys = log_keys(logs)
+    jobs = [LogJob(str(Path(log).resolve()), key, str(out_dir) if out_dir else None, profile,
+                   fingerprint, tuple(methods), skip_bad, tuple(sorted((bus_map or {}).items())),
+                   chunk_bytes) for log, key in zip(logs, keys, strict=True)]
+    records: list[LogRecord | None] = [done_before(job) if resume else None for job in jobs]
+    todo = [k for k, r in enumerate(records) if r is None]
+    if client is None:
+        for k in todo:
+            records[k] = replay_log(jobs[k])
+    else:
+        results = run_tasks(client, replay_log, [jobs[k] for k in todo],
+                            [jobs[k].key for k in todo], progress)
+        for k, (result, error) in zip(todo, results, strict=True):
+            records[k] = result if error is None else LogRecord(
+                jobs[k].log, jobs[k].key, profile=profile, methods=",".join(methods),
+                status="failed", error=f"{type(error).__name__}: {error}")
+    done = [r for r in records if r is not None]
+    if out_dir is not None:
+        write_summary(out_dir / SUMMARY, done)
+    return done
+
+
+def write_summary(path: Path, records: list[LogRecord]) -> None:
+    """The summary table: a row per log (valid shares as one column per method)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from slipd.replay.writers import partial_path
+
+    methods = list(dict.fromkeys(m for r in records for m in r.valid_share))
+    columns: dict[str, list] = {name: [] for name in RECORD_FIELDS if name != "valid_share"}
+    for m in methods:
+        columns[f"valid_share_{m}"] = []
+    for record in records:
+        row = asdict(record)
+        shares = row.pop("valid_share")
+        for name, value in row.items():
+            columns[name].append(value)
+        for m in methods:
+            columns[f"valid_share_{m}"].append(shares.get(m))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = partial_path(path)
+    pq.write_table(pa.table(columns), str(partial), compression="zstd")
+    os.replace(partial, path)
+
+
+def summary_lines(records: list[LogRecord]) -> list[str]:
+    """One line per log for the terminal."""
+    lines = []
+    for r in records:
+        if r.status == "failed":
+            lines.append(f"{r.log}: error: {r.error}")
+            continue
+        shares = ", ".join(f"{m} {100 * r.valid_share[m]:.1f} %"
+                           for m in r.methods.split(",") if m in r.valid_share)
+        done = "done before (--resume)" if r.status == "skipped" else f"{r.seconds:.2f} s"
+        lines.append(f"{r.log}: {r.frames} frames, {r.ticks} ticks, {done}; valid: {shares}")
+    return lines

@@ -1,0 +1,554 @@
+"""Streaming replay: a log read, decoded, latched and estimated chunk by chunk.
+
+The batch engine (:mod:`slipd.replay.engine`) holds a whole log in memory; this module runs the
+same kernels on pieces of it, in four stages a chunk passes through in turn::
+
+    frame_chunks (read)  ->  Latcher (decode, latch, tick)  ->  MethodRuns (estimate)  ->  sinks
+
+and carries across every chunk boundary what the whole-log run carries from one frame or tick
+to the next, so each chunk's rows are the whole-log run's rows for its ticks, bit for bit
+(tests/test_stream.py):
+
+* the codec's decode state (latch, per-message counters and times, error counts): one
+  :class:`~slipd.codec.Codec` per log;
+* the tick grid of :func:`~slipd.replay.engine.tick_grid`: tick ``k`` at ``t0 + dt + k dt``
+  (``t0`` the log's first frame). A chunk latches the ticks whose frames have all been read
+  (tick time strictly before the newest frame read, as a later frame may share the newest
+  time); the frames after the last latched tick wait for the next chunk. At the end, the
+  grid's own count decides the last ticks;
+* a flight recorder's ticks (its SLIPD_STATE lines, as :func:`~slipd.replay.engine.
+  recorded_ticks`): the input lines below a chunk's last tick wait for the next one, and the
+  previous tick time gives the first tick's catch-up steps (``pipeline.steps_per_tick``);
+* every method's state array (``Pipeline.run`` on the chunk with the carried state);
+* the log channel -> profile bus choice (:func:`~slipd.replay.engine.channel_buses`), made on
+  the channels seen so far and checked not to change as more appear (a log whose channel
+  picture changes after its first chunk is an error that asks for ``--bus``, not a silently
+  different replay).
+
+Memory is bounded by the chunk (``chunk_bytes`` of log text, CHUNK_BYTES by default), never
+by the log. Two whole-log decisions are made on the first chunk instead: whether the log is a
+flight recording (its ticks start in the first second), and, as above, the bus choice; each
+is checked on every later chunk and a contradiction is a clear error.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import itertools
+import zlib
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slipd.channels import N_OUT, U_LEN
+from slipd.codec import Codec, kernels
+from slipd.errors import ConfigError, LogFormatError
+from slipd.pipeline import TICK_DT, Pipeline, steps_per_tick
+from slipd.profile import Profile, load_profile
+from slipd.replay.candump import FLAG_TX, MAX_CHANNELS, Frames, parse_candump
+from slipd.replay.engine import (
+    Inputs,
+    _channels_carrying,
+    _reads_carrying,
+    channel_buses,
+    recorded_ticks,
+)
+
+#: Log text per chunk: ~90,000 frames of a candump log, ~2 minutes of the default profile's
+#: bus. Measured on the endurance drive with every method and --out x.parquet (benchmarks/
+#: fleet.py): a 16 MB chunk peaked at ~640 MB RSS, 4 MB at ~440 MB (of which ~290 MB are the
+#: loaded kernels), at the same speed.
+CHUNK_BYTES = 4 << 20
+#: Bytes of a candump line, for sizing chunks of the formats read message by message.
+_LINE_BYTES = 36
+
+
+# ---------------------------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------------------------
+
+
+def line_blocks(path: Path, chunk_bytes: int = CHUNK_BYTES, digest=None
+                ) -> Iterator[tuple[np.ndarray, int]]:
+    """Whole lines of a text file (``.gz`` decompressed) in blocks of about ``chunk_bytes``:
+    (uint8 view of the block, line number of its first line). A block is valid until the next
+    one is asked for (one buffer is reused). ``digest`` (a hashlib object) is fed the file's
+    bytes as they are read (gzip: the decompressed text)."""
+    path = Path(path)
+    if not path.exists():
+        raise LogFormatError(f"{path}: no such file")
+    opener = gzip.open if path.suffix == ".gz" else open
+    buf = np.empty(max(int(chunk_bytes), 1 << 12), dtype=np.uint8)
+    carry = 0
+    line = 1
+    with opener(path, "rb") as handle:
+        while True:
+            if carry == len(buf):  # a line longer than the buffer: grow it
+                buf = np.concatenate([buf, np.empty(len(buf), dtype=np.uint8)])
+            view = memoryview(buf)[carry:]
+            try:
+                got = handle.readinto(view)
+            except (OSError, EOFError, zlib.error) as exc:  # BadGzipFile is an OSError
+                raise LogFormatError(f"{path}: cannot read it ({exc or 'truncated'})") from exc
+            if digest is not None and got:
+                digest.update(view[:got])
+            end = carry + got
+            if got == 0:
+                if carry:
+                    yield buf[:carry], line
+                return
+            cut = _after_last_newline(buf, carry, end)
+            if cut == 0:  # no line ends in the buffer yet
+                carry = end
+                continue
+            block = buf[:cut]
+            yield block, line
+            line += int(np.count_nonzero(block == 10))
+            carry = end - cut
+            buf[:carry] = buf[cut:end]
+
+
+def _after_last_newline(buf: np.ndarray, start: int, end: int) -> int:
+    """Index after the last newline in ``buf[start:end]`` (0: none); searches the tail first."""
+    tail = 1 << 16
+    lo = end
+    while lo > start:
+        lo, hi = max(start, lo - tail), lo
+        hits = np.flatnonzero(buf[lo:hi] == 10)
+        if len(hits):
+            return lo + int(hits[-1]) + 1
+        tail *= 4
+    return 0
+
+
+@dataclass
+class ReadStats:
+    """What a chunked read saw of a log: frames, skipped lines, channel names, checksum."""
+
+    source: str
+    frames: int = 0
+    bad_lines: int = 0
+    bad_line_numbers: list[int] = field(default_factory=list)
+    channels: list[str] = field(default_factory=list)
+    sha256: str = ""
+
+    def adopt(self, frames: Frames) -> Frames:
+        """``frames`` (a chunk with its own channel list) with the log's channel indices
+        (first appearance over the chunks so far, as a whole-log read numbers them)."""
+        index = np.zeros(max(len(frames.channels), 1), dtype=np.uint8)
+        for local, name in enumerate(frames.channels):
+            if name not in self.channels:
+                if len(self.channels) >= MAX_CHANNELS:
+                    raise LogFormatError(f"{self.source}: more than {MAX_CHANNELS} distinct "
+                                         f"channel names (at {name!r})")
+                self.channels.append(name)
+            index[local] = self.channels.index(name)
+        self.frames += len(frames)
+        self.bad_lines += frames.bad_lines
+        room = 100 - len(self.bad_line_numbers)
+        self.bad_line_numbers += frames.bad_line_numbers[:max(room, 0)]
+        frames.channel = index[frames.channel] if len(frames) else frames.channel
+        frames.channels = list(self.channels)
+        frames.bad_lines, frames.bad_line_numbers = 0, []
+        return frames
+
+
+def frame_chunks(path: str | Path, skip_bad: bool = False, chunk_bytes: int = CHUNK_BYTES,
+                 stats: ReadStats | None = None, checksum: bool = False) -> Iterator[Frames]:
+    """The frames of any log :func:`~slipd.replay.readers.read_frames` reads, chunk by chunk,
+    with the log's channel numbering (``channels`` lists the names seen so far). ``stats``
+    (updated as chunks are read) ends with the frame and skipped-line counts; with
+    ``checksum`` also the file's SHA-256 (candump text: of the bytes read, else a pass of its
+    own). A candump log is read in blocks of whole lines; a python-can format by
+    ``chunk_bytes / 36`` messages; an MF4 bus log whole (asammdf reads its groups as whole
+    arrays), then cut into chunks."""
+    from slipd.replay import readers
+
+    path = Path(path)
+    stats = stats if stats is not None else ReadStats(str(path))
+    suffixes = "".join(path.suffixes[-2:]) if path.suffix == ".gz" else path.suffix
+    base_suffix = suffixes.removesuffix(".gz")
+    if base_suffix in readers.CANDUMP_SUFFIXES or base_suffix == "":
+        digest = hashlib.sha256() if checksum else None
+        for block, first_line in line_blocks(path, chunk_bytes, digest):
+            yield stats.adopt(parse_candump(block, str(path), skip_bad, first_line))
+        if digest is not None:
+            stats.sha256 = digest.hexdigest()
+        return
+    if checksum:
+        stats.sha256 = file_sha256(path)
+    per_chunk = max(1, chunk_bytes // _LINE_BYTES)
+    if suffixes == ".mf4" or base_suffix not in readers.LIBRARY_SUFFIXES:
+        whole = readers.read_frames(path, skip_bad=skip_bad)  # MF4, or the suffix error
+        for start in range(0, max(len(whole), 1), per_chunk):
+            yield stats.adopt(_piece(whole, start, start + per_chunk))
+        return
+    yield from (stats.adopt(f) for f in _python_can_chunks(path, per_chunk))
+
+
+def _python_can_chunks(path: Path, per_chunk: int) -> Iterator[Frames]:
+    import can
+
+    from slipd.replay.messages import frames_from_messages
+
+    try:
+        messages = iter(can.LogReader(str(path)))
+        while True:
+            batch = list(itertools.islice(messages, per_chunk))
+            if not batch:
+                return
+            yield frames_from_messages(batch, source=str(path))
+    except (ValueError, OSError) as exc:
+        raise LogFormatError(f"{path}: python-can cannot read it: {exc}") from exc
+
+
+def file_sha256(path: str | Path, block: int = 1 << 22) -> str:
+    """SHA-256 of a file's bytes, read in blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while chunk := handle.read(block):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _piece(frames: Frames, start: int, stop: int, copy: bool = True) -> Frames:
+    """Frames ``[start, stop)``: copies (so a small piece does not pin its parent's arrays),
+    or views."""
+    def cut(a: np.ndarray) -> np.ndarray:
+        return a[start:stop].copy() if copy else a[start:stop]
+
+    return Frames(cut(frames.t), cut(frames.frame_id), cut(frames.flags), cut(frames.dlc),
+                  cut(frames.data), cut(frames.channel), list(frames.channels), frames.source,
+                  frames.bad_lines if start == 0 else 0,
+                  frames.bad_line_numbers if start == 0 else [])
+
+
+def frames_empty(channels: list[str], source: str) -> Frames:
+    """No frames (a chunk with none)."""
+    return Frames(np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.uint8),
+                  np.zeros(0, np.uint8), np.zeros((0, 8), np.uint8), np.zeros(0, np.uint8),
+                  list(channels), source)
+
+
+def concat_frames(first: Frames | None, second: Frames) -> Frames:
+    """``first`` then ``second`` (the channel list of ``second``, which extends the first's)."""
+    if first is None or not len(first):
+        return second
+    width = max(first.data.shape[1], second.data.shape[1])
+
+    def wide(d: np.ndarray) -> np.ndarray:
+        return d if d.shape[1] == width else np.pad(d, ((0, 0), (0, width - d.shape[1])))
+
+    return Frames(np.concatenate([first.t, second.t]),
+                  np.concatenate([first.frame_id, second.frame_id]),
+                  np.concatenate([first.flags, second.flags]),
+                  np.concatenate([first.dlc, second.dlc]),
+                  np.concatenate([wide(first.data), wide(second.data)]),
+                  np.concatenate([first.channel, second.channel]),
+                  second.channels, second.source)
+
+
+# ---------------------------------------------------------------------------------------------
+# decode and latch
+# ---------------------------------------------------------------------------------------------
+
+
+class _BusChoice:
+    """engine.frame_buses over a log read in chunks: the choice is made on the channels seen
+    so far and must not change for a channel once made."""
+
+    def __init__(self, codec: Codec, bus_map: dict[str, str] | None, source: str):
+        self.codec, self.bus_map, self.source = codec, bus_map, source
+        self.carrying: list[str] = []
+        self.chosen: dict[str, int | None] = {}  # channel name -> bus index (None: unread)
+        self.names: list[str] = []
+        self.any_frames = False
+
+    def buses(self, frames: Frames, first_frame: int) -> np.ndarray:
+        """Bus index of each frame of a chunk (-1: a channel the profile does not read);
+        ``first_frame`` is the chunk's first frame number in the log (for errors)."""
+        names = list(frames.channels)
+        self.names = names
+        self.any_frames = self.any_frames or len(frames) > 0
+        if _reads_carrying(self.codec, self.bus_map, names):
+            found = _channels_carrying(frames, self.codec, skip=set(self.carrying))
+            order = {name: k for k, name in enumerate(names)}
+            self.carrying = sorted(set(self.carrying) | set(found), key=order.__getitem__)
+        chosen = channel_buses(names, self.carrying, self.codec, self.bus_map, self.source,
+                               self.any_frames, complete=False)
+        for name in names:
+            bus = chosen.get(name)
+            if name in self.chosen and self.chosen[name] != bus:
+                raise ConfigError(
+                    f"{self.source}: from frame {first_frame + 1} on, log channel {name!r} "
+                    f"would be read as {self._bus_name(bus)} where the frames before were "
+                    f"read as {self._bus_name(self.chosen[name])} (channels seen: {names}); "
+                    f"name each bus's channel with --bus BUS=CHANNEL")
+            self.chosen[name] = bus
+        result = np.full(len(frames), -1, dtype=np.int64)
+        for name, bus in chosen.items():
+            result[frames.channel == names.index(name)] = bus
+        return result
+
+    def _bus_name(self, bus: int | None) -> str:
+        return "no bus" if bus is None else f"bus {self.codec.inputs.buses[bus]!r}"
+
+    def finish(self) -> None:
+        """The checks that need the whole log (a bus with no channel, --bus naming a channel
+        the log lacks)."""
+        channel_buses(self.names, self.carrying, self.codec, self.bus_map, self.source,
+                      self.any_frames, complete=True)
+
+
+@dataclass
+class Latched:
+    """One chunk's ticks: the latched inputs."""
+
+    inputs: Inputs
+
+
+class Latcher:
+    """Decode and latch a log fed chunk by chunk, on exactly the ticks (and with exactly the
+    latch) of :func:`~slipd.replay.engine.latch_log_or_recording` over the whole log.
+
+    ``feed`` each chunk of frames (with the log's channel numbering, see
+    :func:`frame_chunks`), then ``finish``; each returns the ticks it could latch (or None).
+    ``errors`` (the codec's counters) is complete after ``finish``."""
+
+    def __init__(self, profile: Profile, bus_map: dict[str, str] | None = None,
+                 dt: float = TICK_DT, source: str = ""):
+        self.profile, self.dt, self.source = profile, dt, source
+        self.codec = Codec(profile)
+        self.width = max(8, self.codec.inputs.max_dlc)
+        self.state_id = Codec.output_plan(profile).frame_id("SLIPD_STATE")
+        self.recording: bool | None = None
+        self._buses = _BusChoice(self.codec, bus_map, source)
+        self._pending: Frames | None = None
+        self._pending_bus = np.zeros(0, dtype=np.int64)
+        self._t0: float | None = None
+        self._next_tick = 0
+        self._last_time = -np.inf
+        self._last_tick: float | None = None
+        self.frames_fed = 0
+        self.ticks = 0
+
+    @property
+    def errors(self) -> dict[str, dict[str, int]]:
+        return self.codec.error_counts()
+
+    def feed(self, frames: Frames) -> Latched | None:
+        if not len(frames):
+            return None
+        first = self.frames_fed
+        self.frames_fed += len(frames)
+        if self.recording is None:
+            self.recording = recorded_ticks(frames, self.profile) is not None
+        if self.recording:
+            return self._feed_recording(frames, first)
+        self._check_grid_log(frames, first)
+        bus = self._buses.buses(frames, first)
+        pending = concat_frames(self._pending, frames)
+        pending_bus = np.concatenate([self._pending_bus, bus])
+        if self._t0 is None:
+            self._t0 = float(pending.t[0])
+        newest = pending.t[-1]
+        ticks = self._grid(newest)
+        ticks = ticks[ticks < newest]  # a later frame may still share the newest time
+        return self._latch(pending, pending_bus, ticks)
+
+    def finish(self) -> Latched | None:
+        """The last ticks (the grid's count over the whole log), and the whole-log checks."""
+        self._buses.finish()
+        if self.recording or self._pending is None or not len(self._pending):
+            return None
+        ticks = self._grid(self._pending.t[-1])
+        return self._latch(self._pending, self._pending_bus, ticks)
+
+    def _grid(self, newest: float) -> np.ndarray:
+        """Ticks from the next unlatched one up to the grid's end if ``newest`` were the
+        log's last frame time (engine.tick_grid's arithmetic, so the same doubles)."""
+        start = self._t0 + self.dt
+        count = int(np.floor((newest - self._t0) / self.dt + 1e-9))
+        return start + self.dt * np.arange(self._next_tick, max(count, self._next_tick))
+
+    def _check_grid_log(self, frames: Frames, first: int) -> None:
+        t = frames.t
+        behind = np.flatnonzero(np.diff(np.concatenate([[self._last_time], t])) < 0)
+        if len(behind):
+            bad = int(behind[0])
+            before = t[bad - 1] if bad else self._last_time
+            raise LogFormatError(f"{self.source}: frame {first + bad + 1} goes back in time "
+                                 f"({t[bad]:.6f} < {before:.6f}); sort the log")
+        self._last_time = float(t[-1])
+        sent_ticks = ((frames.flags & FLAG_TX) != 0) & (frames.frame_id == self.state_id)
+        if sent_ticks.any():
+            at = first + int(np.flatnonzero(sent_ticks)[0]) + 1
+            raise LogFormatError(
+                f"{self.source}: frame {at} is a SLIPD_STATE slipd sent (a flight-recorder "
+                f"tick), but the log's first {first} frames had none: a recording starts with "
+                f"its ticks, so this log cannot be replayed as one; cut it at that frame")
+
+    def _feed_recording(self, frames: Frames, first: int) -> Latched | None:
+        combined = concat_frames(self._pending, frames)
+        recorded = recorded_ticks(combined, self.profile)
+        if recorded is None:  # no tick in it: every line waits for the next one
+            self._pending = combined
+            return None
+        inputs, tick_time, tick_until = recorded
+        bus = self._buses.buses(inputs, first)
+        before = [] if self._last_tick is None else [self._last_tick]
+        steps = steps_per_tick(np.concatenate([before, tick_time]), self.dt)[len(before):]
+        self._last_tick = float(tick_time[-1])
+        return self._latch(inputs, bus, tick_time, tick_until, steps if np.any(steps > 1)
+                           else None)
+
+    def _latch(self, pending: Frames, bus: np.ndarray, ticks: np.ndarray,
+               tick_until: np.ndarray | None = None,
+               steps: np.ndarray | None = None) -> Latched | None:
+        if tick_until is None:
+            tick_until = np.searchsorted(pending.t, ticks, side="right").astype(np.int64)
+        used = int(tick_until[-1]) if len(ticks) else 0
+        if len(ticks):
+            p, s = self.codec.inputs, self.codec.state
+            data = pending.data if pending.data.shape[1] >= self.width else np.pad(
+                pending.data, ((0, 0), (0, self.width - pending.data.shape[1])))
+            U = np.zeros((len(ticks), U_LEN))
+            kernels.latch_ticks(p.plan_i, p.plan_f, p.lookup, p.timeouts,
+                                self.codec.channel_timeouts, self.codec.calibration, pending.t,
+                                bus, pending.frame_id,
+                                pending.flags, pending.dlc.astype(np.int64), data, ticks,
+                                tick_until, s.latch, s.msg_state, s.errors, U)
+        else:
+            U = np.zeros((0, U_LEN))
+        self._pending = _piece(pending, used, len(pending))
+        self._pending_bus = bus[used:].copy()
+        self._next_tick += len(ticks)
+        self.ticks += len(ticks)
+        if not len(ticks):
+            return None
+        return Latched(Inputs(ticks, U, {}, used, steps))
+
+
+# ---------------------------------------------------------------------------------------------
+# estimate
+# ---------------------------------------------------------------------------------------------
+
+
+class MethodRuns:
+    """Methods stepping through a log's chunks: one Pipeline and one carried state each."""
+
+    def __init__(self, profile: Profile, methods: Iterable[str],
+                 overrides: dict[str, float] | None = None, dt: float = TICK_DT):
+        self.pipelines = {name: Pipeline(name, profile, overrides, dt) for name in methods}
+        self.states = {name: p.new_state() for name, p in self.pipelines.items()}
+
+    def run(self, inputs: Inputs) -> dict[str, np.ndarray]:
+        """Each method's supervised outputs [n_ticks, N_OUT] on a chunk's inputs."""
+        if not len(inputs.t):
+            return {name: np.zeros((0, N_OUT)) for name in self.pipelines}
+        return {name: p.run(inputs.U, inputs.steps, self.states[name])
+                for name, p in self.pipelines.items()}
+
+
+@dataclass
+class Chunk:
+    """One chunk of a streamed log: the log's frames read for it (every frame, in file
+    order: what a merged candump writes), its ticks' latched inputs and each method's outputs
+    on them. The last chunk may have no tick (the frames after the log's last tick)."""
+
+    inputs: Inputs
+    frames: Frames
+    outputs: dict[str, np.ndarray]
+
+
+class LogStream:
+    """A log streamed through the methods: iterate it for its :class:`Chunk` s; afterwards
+    ``read`` (frames, skipped lines, channels, SHA-256 with ``checksum``), ``errors`` (the
+    codec's counters) and ``ticks`` describe the whole log.
+
+    >>> for chunk in LogStream("drive.log", "default", ["kinematic_heuristic"]):
+    ...     writer.write("kinematic_heuristic", chunk.inputs.t, chunk.outputs[...])
+    """
+
+    def __init__(self, log: str | Path, profile: Profile | str, methods: Iterable[str] = (),
+                 skip_bad: bool = False, bus_map: dict[str, str] | None = None,
+                 chunk_bytes: int = CHUNK_BYTES, overrides: dict[str, float] | None = None,
+                 checksum: bool = False, dt: float = TICK_DT):
+        self.log = Path(log)
+        self.profile = load_profile(profile) if isinstance(profile, str) else profile
+        self.methods = list(methods)
+        self.skip_bad, self.bus_map, self.chunk_bytes = skip_bad, bus_map, chunk_bytes
+        self.checksum, self.dt = checksum, dt
+        self.runs = MethodRuns(self.profile, self.methods, overrides, dt)
+        self.read = ReadStats(str(self.log))
+        self.latcher = Latcher(self.profile, bus_map, dt, str(self.log))
+        self.first_time: float | None = None
+
+    @property
+    def errors(self) -> dict[str, dict[str, int]]:
+        return self.latcher.errors
+
+    @property
+    def ticks(self) -> int:
+        return self.latcher.ticks
+
+    def __iter__(self) -> Iterator[Chunk]:
+        chunks = frame_chunks(self.log, self.skip_bad, self.chunk_bytes, self.read,
+                              self.checksum)
+        read: Frames | None = None  # frames read since the last chunk was handed out
+        for frames in chunks:
+            if self.first_time is None and len(frames):
+                self.first_time = float(frames.t[0])
+            read = concat_frames(read, frames)
+            latched = self.latcher.feed(frames)
+            if latched is not None:
+                yield self._estimate(latched.inputs, read)
+                read = None
+        latched = self.latcher.finish()
+        if latched is not None or (read is not None and len(read)):
+            inputs = latched.inputs if latched is not None else Inputs(
+                np.zeros(0), np.zeros((0, U_LEN)), {}, 0)
+            yield self._estimate(inputs, read if read is not None else
+                                 frames_empty(self.read.channels, str(self.log)))
+
+    def _estimate(self, inputs: Inputs, read: Frames) -> Chunk:
+        return Chunk(inputs, read, self.runs.run(inputs))
+
+
+def stream_inputs(log: str | Path, profile: Profile | str,
+                  bus_map: dict[str, str] | None = None, skip_bad: bool = False,
+                  chunk_bytes: int = CHUNK_BYTES) -> Iterator[Inputs]:
+    """The streaming twin of ``latch_log_or_recording(read_frames(log), profile)``: the
+    latched inputs chunk by chunk (their rows together are the whole-log Inputs' rows)."""
+    for chunk in LogStream(log, profile, (), skip_bad, bus_map, chunk_bytes):
+        yield chunk.inputs
+
+
+def joined_inputs(parts: Iterable[Inputs]) -> Inputs:
+    """Chunks' inputs as one (tests, small logs)."""
+    parts = list(parts)
+    if not parts:
+        return Inputs(np.zeros(0), np.zeros((0, U_LEN)), {}, 0)
+    steps = [p.steps if p.steps is not None else np.ones(len(p.t), np.int64) for p in parts]
+    joined = np.concatenate(steps)
+    return Inputs(np.concatenate([p.t for p in parts]), np.concatenate([p.U for p in parts]),
+                  {}, sum(p.n_frames for p in parts), joined if np.any(joined > 1) else None)
+
+
+def warm_kernels(methods: Iterable[str], profile: Profile | str = "default") -> None:
+    """Load (or compile into numba's cache) every kernel a replay of ``methods`` calls: the
+    candump parser, decode and latch, each method, supervision and the CSV formatter."""
+    from slipd.replay import textformat
+
+    text = b"(1.000000) can0 123#00\n(1.050000) can0 123#00\n"
+    frames = parse_candump(np.frombuffer(text, dtype=np.uint8), "warm-up")
+    profile = load_profile(profile) if isinstance(profile, str) else profile
+    latcher = Latcher(profile, source="warm-up")
+    latched = latcher.feed(frames)
+    runs = MethodRuns(profile, methods)
+    if latched is not None:
+        runs.run(latched.inputs)
+    textformat.format_csv(np.zeros((1, 2)), np.array([4, textformat.INTEGER]), "m", 1)

@@ -1,0 +1,152 @@
+"""Many logs on a real Dask cluster (slipd.replay.fleet): a scheduler and two workers started as
+processes of their own on 127.0.0.1, no mocks. The dataset equals the logs replayed one by one,
+a corrupt log among good ones is reported with its line while the others finish, --resume
+skips what is done, and eval on the cluster scores as eval without it."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slipd.cli import main
+
+pytest.importorskip("distributed")
+pq = pytest.importorskip("pyarrow.parquet")
+pytest.importorskip("vehiclemodels")
+
+METHODS = "zero,kinematic_heuristic"
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    """Three short drives with their truth, and a copy of one with a malformed line."""
+    from slipd.commands.sim import simulate_to_files
+
+    folder = tmp_path_factory.mktemp("fleet_logs")
+    for name, seconds in (("step_steer", 4.0), ("sine_steer", 5.0), ("slalom", 6.0)):
+        simulate_to_files(name, folder, duration=seconds)
+    lines = (folder / "sine_steer.log").read_text().splitlines(keepends=True)
+    lines.insert(1200, "(1700000005.000000) can0 1O1#0011\n")
+    (folder / "corrupt.log").write_text("".join(lines))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """``dask scheduler`` and two ``dask worker`` processes on loopback; yields the address."""
+    folder = tmp_path_factory.mktemp("dask")
+    scheduler_file = folder / "scheduler.json"
+    dask = [sys.executable, "-m", "dask"]
+    env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
+    processes = [subprocess.Popen(
+        dask + ["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                "--scheduler-file", str(scheduler_file)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    try:
+        deadline = time.monotonic() + 60
+        while not scheduler_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        address = json.loads(scheduler_file.read_text())["address"]
+        for k in range(2):
+            processes.append(subprocess.Popen(
+                dask + ["worker", address, "--host", "127.0.0.1", "--nthreads", "1",
+                        "--no-dashboard", "--name", f"w{k}", "--local-directory",
+                        str(folder / f"w{k}")],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
+        from distributed import Client
+
+        with Client(address, timeout=30) as client:
+            client.wait_for_workers(2, timeout=90)
+            assert len(client.scheduler_info()["workers"]) == 2
+        yield address
+    finally:
+        for process in reversed(processes):
+            process.terminate()
+        for process in processes:
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+def assert_same_rows(path: Path, other: Path) -> None:
+    """The two Parquet files hold the same columns (units included), bit for bit (NaN too),
+    and the same run description."""
+    a, b = pq.read_table(path), pq.read_table(other)
+    assert a.schema.remove_metadata() == b.schema.remove_metadata()
+    assert a.schema.metadata[b"slipd"] == b.schema.metadata[b"slipd"]
+    assert a.num_rows == b.num_rows > 0
+    for name in a.column_names:
+        x, y = a[name].combine_chunks(), b[name].combine_chunks()
+        if hasattr(x, "dictionary"):
+            assert x.dictionary_decode().to_pylist() == y.dictionary_decode().to_pylist()
+        else:
+            assert x.is_null().to_pylist() == y.is_null().to_pylist(), name
+            assert x.fill_null(0).to_numpy().tobytes() == y.fill_null(0).to_numpy().tobytes(), name
+
+
+def test_a_cluster_replays_each_log_as_one_run_and_reports_the_corrupt_one(
+        logs, cluster, tmp_path, capsys):
+    good = ["sine_steer", "slalom", "step_steer"]
+    out = tmp_path / "dataset"
+    pattern = str(logs / "*.log")
+    assert main(["replay", pattern, "--estimator", METHODS, "--dask", cluster,
+                 "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert "corrupt.log:1201: expected a hex CAN ID" in captured.err
+    assert "1 of 4 logs failed" in captured.err
+    parts = sorted(p.parent.name for p in (out / "estimates").glob("*/part-0.parquet"))
+    assert parts == [f"log={name}" for name in good]
+    assert not [p for p in out.rglob(".*")]  # no partial file left behind
+    summary = pq.read_table(out / "summary.parquet").to_pydict()
+    rows = {Path(log).stem: k for k, log in enumerate(summary["log"])}
+    failed = rows["corrupt"]
+    assert summary["status"][failed] == "failed" and ":1201:" in summary["error"][failed]
+    workers = set()
+    for name in good:
+        # the partition is the table of that log replayed alone
+        alone = tmp_path / f"{name}.parquet"
+        assert main(["replay", str(logs / f"{name}.log"), "--estimator", METHODS,
+                     "--out", str(alone)]) == 0
+        partition = out / "estimates" / f"log={name}" / "part-0.parquet"
+        assert_same_rows(partition, alone)
+        record = json.loads(pq.read_metadata(partition).metadata[b"slipd_log"])
+        k = rows[name]
+        import hashlib
+
+        digest = hashlib.sha256((logs / f"{name}.log").read_bytes()).hexdigest()
+        assert record["sha256"] == summary["sha256"][k] == digest
+        assert record["size_bytes"] == (logs / f"{name}.log").stat().st_size
+        assert record["profile"] == "default" and len(record["profile_sha256"]) == 16
+        assert summary["status"][k] == "ok" and summary["ticks"][k] > 300
+        workers.add(summary["worker"][k])
+    assert len(workers) == 2  # both workers took logs
+    # the dataset reads as one table with the log as a column
+    pd = pytest.importorskip("pandas")
+    frame = pd.read_parquet(out / "estimates")
+    assert sorted(frame["log"].unique()) == good
+    # --resume: the three done logs are skipped, the corrupt one is tried (and fails) again
+    assert main(["replay", pattern, "--estimator", METHODS, "--dask", cluster,
+                 "--out", str(out), "--resume"]) == 1
+    assert capsys.readouterr().out.count("done before (--resume)") == 3
+    summary = pq.read_table(out / "summary.parquet").to_pydict()
+    assert sorted(summary["status"]) == ["failed", "skipped", "skipped", "skipped"]
+
+
+def test_eval_on_the_cluster_scores_as_eval_here(logs, cluster, tmp_path):
+    good = [str(logs / f"{name}.log") for name in ("sine_steer", "slalom", "step_steer")]
+    here, there = tmp_path / "here.json", tmp_path / "there.json"
+    assert main(["eval", *good, "--estimator", METHODS, "--out", str(here)]) == 0
+    assert main(["eval", *good, "--estimator", METHODS, "--out", str(there),
+                 "--dask", cluster]) == 0
+    assert json.loads(here.read_text()) == json.loads(there.read_text())
+    scores = json.loads(here.read_text())
+    assert set(scores["scenarios"]) == {Path(g).name for g in good}
+    assert np.isfinite(scores["overall"]["estimators"]["kinematic_heuristic"]["beta_rms_deg"])

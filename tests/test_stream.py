@@ -1,0 +1,292 @@
+"""Streaming replay (slipd.replay.stream): a log in chunks gives the whole-log run's rows bit for
+bit (every method, grid logs and a flight recording with skipped ticks), the files the CLI
+writes do not depend on the chunk size, errors name the log's own lines, and the exact
+formatters and sums it rests on agree with Python's."""
+
+from __future__ import annotations
+
+import gzip
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from slipd.cli import main
+from slipd.errors import ConfigError, LogFormatError
+from slipd.estimators.registry import available
+from slipd.pipeline import Pipeline
+from slipd.replay import outputs, textformat, writers
+from slipd.replay.candump import read_candump, write_candump
+from slipd.replay.engine import Estimate, latch_log_or_recording
+from slipd.replay.readers import read_frames
+from slipd.replay.stream import LogStream, joined_inputs
+
+#: chunk sizes in bytes: a few lines, a few hundred lines, the whole log
+CHUNKS = (1 << 12, 1 << 16, 1 << 30)
+
+
+def whole_run(log, profile, methods):
+    """The whole-log path: read, latch (or a recording's ticks), Pipeline.run."""
+    inputs = latch_log_or_recording(read_frames(log), profile)
+    return inputs, {m: Pipeline(m, profile).run(inputs.U, inputs.steps) for m in methods}
+
+
+def assert_stream_is_whole(log, profile, methods, chunk_bytes):
+    inputs, outs = whole_run(log, profile, methods)
+    stream = LogStream(log, profile, methods, chunk_bytes=chunk_bytes)
+    chunks = list(stream)
+    joined = joined_inputs(c.inputs for c in chunks)
+    assert np.array_equal(joined.t, inputs.t)
+    assert np.array_equal(joined.U, inputs.U, equal_nan=True)
+    if inputs.steps is None:
+        assert joined.steps is None
+    else:
+        assert np.array_equal(joined.steps, inputs.steps)
+    for m in methods:
+        streamed = np.concatenate([c.outputs[m] for c in chunks])
+        assert np.array_equal(streamed, outs[m], equal_nan=True), m
+    assert stream.errors == inputs.errors
+    assert stream.read.frames == len(read_frames(log)) == sum(len(c.frames) for c in chunks)
+    return chunks
+
+
+@pytest.mark.parametrize("chunk_bytes", CHUNKS[:2])
+def test_every_method_streamed_equals_the_whole_log_run(codec_drives, profile, chunk_bytes):
+    """The codec drives (a corner, friction jumps, a drift), every registered method incl.
+    the ensemble: chunk boundaries fall between ticks, between a tick and the frames that
+    share its time, and inside every method's settling."""
+    for drive in codec_drives.values():
+        chunks = assert_stream_is_whole(drive.log, profile, available(), chunk_bytes)
+        assert len(chunks) > 3
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory, codec_drives, profile):
+    """A flight-recorder log with skipped ticks: a drive merged with its SLIPD_STATE/AUX
+    frames (sent, marked T) as the recorder writes them, with ticks taken out as an overrun
+    skips them (5 ticks, a second, and three seconds: past the catch-up limit)."""
+    drive = codec_drives["step_steer"]
+    frames = read_frames(drive.log)
+    inputs = latch_log_or_recording(frames, profile)
+    estimate = Estimate("kinematic_heuristic", inputs.t,
+                        Pipeline("kinematic_heuristic", profile).run(inputs.U))
+    sent = outputs.output_frames(estimate, len(frames.channels), profile=profile)
+    tick = np.repeat(np.arange(len(inputs.t)), 2)
+    skipped = ((tick >= 200) & (tick < 205)) | ((tick >= 400) & (tick < 500)) | (
+        (tick >= 800) & (tick < 1100))
+    merged = outputs.merge(frames, sent.select(~skipped))
+    path = tmp_path_factory.mktemp("recording") / "recorder.log"
+    write_candump(path, merged.t, merged.frame_id, merged.data, merged.dlc, flags=merged.flags,
+                  channel=merged.channel, channels=frames.channels + ["slipd"])
+    return path
+
+
+@pytest.mark.parametrize("chunk_bytes", CHUNKS)
+def test_a_flight_recording_with_skipped_ticks_streams_as_it_replays(recording, profile,
+                                                                    chunk_bytes):
+    inputs, _ = whole_run(recording, profile, [])
+    assert inputs.steps is not None and inputs.steps.max() == 101 and (inputs.steps == 6).any()
+    assert_stream_is_whole(recording, profile, ["kinematic_heuristic", "ensemble", "zero"],
+                           chunk_bytes)
+
+
+def test_cli_files_do_not_depend_on_the_chunk(codec_drives, tmp_path, monkeypatch):
+    """CSV bytes (the text Python's f-strings wrote before the kernel), Parquet bytes (fixed
+    row groups, the methods one after another) and the merged candump, streamed in 4 KB
+    chunks and in one."""
+    pq = pytest.importorskip("pyarrow.parquet")
+    monkeypatch.setattr(writers, "ROW_GROUP_TICKS", 700)  # several groups per method
+    log = codec_drives["mu_jump"].log
+    methods = ["zero", "kinematic_heuristic", "ensemble"]
+    files = {}
+    for name, mb in (("small", "0.004"), ("whole", "1000")):
+        for suffix in (".csv", ".parquet"):
+            out = tmp_path / f"{name}{suffix}"
+            assert main(["replay", str(log), "--estimator", ",".join(methods), "--out",
+                         str(out), "--chunk-mb", mb]) == 0
+            files[name, suffix] = out.read_bytes()
+        merged = tmp_path / f"{name}.merged.log"
+        assert main(["replay", str(log), "--estimator", "dk_ekf", "--candump", str(merged),
+                     "--chunk-mb", mb]) == 0
+        files[name, "candump"] = merged.read_bytes()
+    for kind in (".csv", ".parquet", "candump"):
+        assert files["small", kind] == files["whole", kind], kind
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+    # the CSV is the text of the per-row f-strings the writer used before
+    inputs, outs = whole_run(log, load("default"), methods)
+    expected = [",".join(writers.TABLE_COLUMNS) + "\n"]
+    for m in methods:
+        c = writers._table_values(inputs.t, outs[m])
+        values = np.column_stack([c[k] for k in writers.TABLE_COLUMNS if k != "estimator"])
+        expected += [textformat.python_row(row, writers.CsvWriter.DECIMALS, m, 1)
+                     for row in values]
+    assert files["small", ".csv"].decode() == "".join(expected)
+    table = pq.read_table(tmp_path / "small.parquet")
+    assert pq.ParquetFile(tmp_path / "small.parquet").num_row_groups == 3 * math.ceil(
+        len(inputs.t) / 700)
+    assert table["estimator"].to_pylist() == [m for m in methods for _ in inputs.t]
+    assert np.array_equal(table["beta_deg"].to_numpy(),
+                          np.concatenate([np.degrees(outs[m][:, 0]) for m in methods]))
+    # the merged candump is the whole-log merge
+    frames = read_frames(log)
+    sent = outputs.output_frames(Estimate("dk_ekf", inputs.t, Pipeline(
+        "dk_ekf", load("default")).run(inputs.U)), len(frames.channels), profile=load("default"))
+    merged = outputs.merge(frames, sent)
+    reference = tmp_path / "reference.log"
+    write_candump(reference, merged.t, merged.frame_id, merged.data, merged.dlc,
+                  flags=merged.flags, channel=merged.channel, channels=frames.channels + ["slipd"])
+    assert files["small", "candump"] == reference.read_bytes()
+
+
+def load(name):
+    from slipd.profile import load_profile
+
+    return load_profile(name)
+
+
+def _damaged(tmp_path, source, line_no: int, text: str = "(1.5) can0 12G#00"):
+    lines = source.read_text().splitlines(keepends=True)
+    lines.insert(line_no - 1, text + "\n")
+    path = tmp_path / "damaged.log"
+    path.write_text("".join(lines))
+    return path
+
+
+def test_a_bad_line_deep_in_the_log_is_named_by_its_own_line_number(codec_drives, profile,
+                                                                    tmp_path):
+    log = _damaged(tmp_path, codec_drives["step_steer"].log, 5001)
+    with pytest.raises(LogFormatError) as whole:
+        read_candump(log)
+    with pytest.raises(LogFormatError) as streamed:
+        list(LogStream(log, profile, ["zero"], chunk_bytes=1 << 12))
+    assert str(streamed.value) == str(whole.value) and ":5001:" in str(whole.value)
+    skipping = LogStream(log, profile, ["zero"], skip_bad=True, chunk_bytes=1 << 12)
+    list(skipping)
+    assert skipping.read.bad_lines == 1 and skipping.read.bad_line_numbers == [5001]
+    # the CLI fails with the line and leaves no half-written table behind
+    out = tmp_path / "tables" / "est.csv"
+    out.parent.mkdir()
+    assert main(["replay", str(log), "--out", str(out), "--chunk-mb", "0.004"]) == 2
+    assert list(out.parent.iterdir()) == []
+
+
+def test_a_gzip_log_streams_as_the_plain_one(codec_drives, profile, tmp_path):
+    log = codec_drives["snow_drift"].log
+    packed = tmp_path / "drive.log.gz"
+    packed.write_bytes(gzip.compress(log.read_bytes()))
+    plain = np.concatenate([c.outputs["d_ekf"] for c in LogStream(log, profile, ["d_ekf"])])
+    streamed = LogStream(packed, profile, ["d_ekf"], chunk_bytes=1 << 12, checksum=True)
+    got = np.concatenate([c.outputs["d_ekf"] for c in streamed])
+    assert np.array_equal(got, plain, equal_nan=True)
+    import hashlib
+
+    assert streamed.read.sha256 == hashlib.sha256(log.read_bytes()).hexdigest()
+
+
+def test_whole_log_decisions_contradicted_later_are_errors(codec_drives, profile, tmp_path):
+    """What a stream decides on its first chunk (recording or not, which channel is the
+    bus) is checked on every later one: a contradiction is an error, never a different
+    replay."""
+    frames = read_frames(codec_drives["step_steer"].log)
+    late = frames.t >= frames.t[0] + 3.0
+    # the profile's frames on a second channel from 3 s on: the bus became ambiguous
+    two = tmp_path / "two.log"
+    write_candump(two, frames.t, frames.frame_id, frames.data, frames.dlc,
+                  channel=late.astype(np.uint8), channels=["can0", "can1"])
+    with pytest.raises(ConfigError, match="--bus"):
+        latch_log_or_recording(read_frames(two), profile)
+    with pytest.raises(ConfigError, match="--bus"):
+        list(LogStream(two, profile, ["zero"], chunk_bytes=1 << 12))
+    # a slipd tick (sent SLIPD_STATE) after the first chunk
+    inputs = latch_log_or_recording(frames, profile)
+    estimate = Estimate("zero", inputs.t, Pipeline("zero", profile).run(inputs.U))
+    sent = outputs.output_frames(estimate, 1, profile=profile)
+    merged = outputs.merge(frames, sent.select(sent.t >= frames.t[0] + 3.0))
+    path = tmp_path / "late_ticks.log"
+    write_candump(path, merged.t, merged.frame_id, merged.data, merged.dlc, flags=merged.flags,
+                  channel=merged.channel, channels=["can0", "slipd"])
+    with pytest.raises(LogFormatError, match="SLIPD_STATE"):
+        list(LogStream(path, profile, ["zero"], chunk_bytes=1 << 12))
+
+
+def test_eval_scores_streamed_are_the_whole_logs(profile, tmp_path):
+    """Exact sums: the scores of a log in 4 KB chunks are those of the whole log at once
+    (metrics.errors over every tick, scored in one piece)."""
+    pytest.importorskip("vehiclemodels")
+    from slipd.commands.sim import simulate_to_files
+    from slipd.eval.runs import score_log
+    from slipd.sim.writer import truth_path_of
+
+    simulate_to_files("mu_jump", tmp_path, duration=12.0)
+    log = tmp_path / "mu_jump.log"
+    methods = ["zero", "hybrid_friction", "ensemble"]
+    small = score_log(log, truth_path_of(log), methods, profile, chunk_bytes=1 << 12)
+    whole = score_log(log, truth_path_of(log), methods, profile, chunk_bytes=1 << 30,
+                      keep=True)
+    assert small.scores() == whole.scores()
+    assert small.rejected_nonfinite == whole.rejected_nonfinite
+    for m in methods:
+        assert whole.errors[m].scores() == small.scores()[m]
+        assert small.scores()[m].samples > 500
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(st.floats(width=64), st.floats(-1e4, 1e4, width=64),
+                          st.integers(-10**7, 10**7).map(lambda k: k / 2**7)),
+                min_size=1, max_size=12),
+       st.integers(0, 6), st.booleans(), st.integers(-32768, 32767))
+def test_the_csv_kernel_writes_what_python_formats(values, decimals, empty_if_nan, whole):
+    """Any float (NaN, inf, -0.0, huge, exact binary ties such as k / 128) with 0-6 decimals,
+    a NaN as an empty cell, an integer column, a text column."""
+    kinds = np.array([decimals + (textformat.EMPTY_IF_NAN if empty_if_nan else 0)] * len(values)
+                     + [textformat.INTEGER])
+    row = np.array([*values, float(whole)])
+    expected = textformat.python_row(row, kinds, "method", 1)
+    assert textformat.format_csv(row[None, :], kinds, "method", 1).decode() == expected
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 10**9), st.integers(0, 6))
+def test_the_csv_kernel_writes_unix_tick_times_itself(tick, decimals):
+    """A log's tick times (a Unix time plus k * 10 ms) are formatted by the kernel, not left
+    to Python row by row (which made the CSV writer the replay's bottleneck), and exactly; it
+    defers only an exact binary tie (a cell whose value times 10**d ends in exactly .5)."""
+    from fractions import Fraction
+
+    t = np.array([[1.7e9 + 0.01 + tick * 0.01, 1_700_000_123.456789]])
+    kinds = np.full(2, decimals)
+    out = np.empty(textformat.row_room(kinds, b""), dtype=np.uint8)
+    python_rows = np.zeros(1, dtype=np.bool_)
+    used, marked = textformat.format_rows(t, kinds, np.zeros(0, np.uint8), -1, out,
+                                          python_rows, np.zeros(1, np.int64))
+    expected = textformat.python_row(t[0], kinds, "", -1)
+    ties = [Fraction(x) * 10**decimals % 1 == Fraction(1, 2) for x in t[0].tolist()]
+    assert bool(marked) == any(ties)
+    if not marked:
+        assert out[:used].tobytes().decode() == expected
+    assert textformat.format_csv(t, kinds).decode() == expected
+
+
+def test_the_csv_kernel_on_ties_and_signed_zeros():
+    values = np.array([[0.125, -0.0, 2.5e-6, -1e-7, 0.5, 1e30, 123456.5, -0.000005]])
+    for d in range(7):
+        kinds = np.full(values.shape[1], d)
+        assert textformat.format_csv(values, kinds).decode() == textformat.python_row(
+            values[0], kinds, "", -1)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(min_value=-1e300, max_value=1e300, width=64), max_size=60),
+       st.lists(st.integers(0, 60), max_size=5))
+def test_an_exact_sum_is_fsum_however_it_is_cut(values, cuts):
+    from slipd.eval.exact_sum import ExactSum
+
+    bounds = sorted({0, len(values), *[min(c, len(values)) for c in cuts]})
+    pieces = [ExactSum().add(np.array(values[a:b])) for a, b in zip(bounds, bounds[1:],
+                                                                     strict=False)]
+    total = ExactSum()
+    for piece in pieces:
+        total.merge(piece)
+    assert total.value() == math.fsum(values)
