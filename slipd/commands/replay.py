@@ -65,14 +65,14 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     from slipd.profile import load_profile
     from slipd.replay import outputs
     from slipd.replay.candump import write_candump
-    from slipd.replay.engine import latch_log_or_recording, run_method
+    from slipd.replay.engine import checked_log, latch_log_or_recording, run_method
     from slipd.replay.readers import read_frames
 
     started = time.perf_counter()
     profile = load_profile(profile_name)
     for name in methods:
         registry.load(name)  # unknown names fail before the log is read
-    frames = read_frames(log, skip_bad=skip_bad)
+    frames = checked_log(read_frames(log, skip_bad=skip_bad), skip_bad, profile)
     inputs = latch_log_or_recording(frames, profile, bus_map)
     estimates = [run_method(inputs, profile, name) for name in methods]
     elapsed = time.perf_counter() - started
@@ -151,12 +151,35 @@ def run(args: argparse.Namespace) -> int:
     if len(targets) == 1:
         print(replay_one(*targets[0]))
         return 0
+    return _replay_batch(targets, args.jobs)
+
+
+def _replay_batch(targets: list[tuple], jobs: int) -> int:
+    """Several logs in parallel processes. A log that fails is reported and the others
+    finish; the exit status is then 1. Any exception of a worker is caught here: one bad
+    log's traceback must not abort a night's batch (a SlipdError prints as its message)."""
     from concurrent.futures import ProcessPoolExecutor
 
     from tqdm import tqdm
 
-    with ProcessPoolExecutor(max_workers=args.jobs or None) as pool:
+    from slipd.errors import SlipdError
+
+    failed = []
+    with ProcessPoolExecutor(max_workers=jobs or None) as pool:
         futures = [pool.submit(replay_one, *target) for target in targets]
-        for future in tqdm(futures, desc="replay", unit="log", file=sys.stderr):
-            print(future.result())
+        for (log, *_), future in zip(targets, tqdm(futures, desc="replay", unit="log",
+                                                   file=sys.stderr), strict=True):
+            try:
+                print(future.result(), flush=True)
+            except SlipdError as exc:
+                failed.append(log)
+                print(f"{log}: error: {exc}", file=sys.stderr, flush=True)
+            except Exception as exc:  # noqa: BLE001 - reported with its type, batch goes on
+                failed.append(log)
+                print(f"{log}: error: {type(exc).__name__}: {exc}", file=sys.stderr,
+                      flush=True)
+    if failed:
+        print(f"slipd replay: {len(failed)} of {len(targets)} logs failed: "
+              f"{', '.join(str(log) for log in failed)}", file=sys.stderr)
+        return 1
     return 0
