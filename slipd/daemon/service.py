@@ -5,15 +5,19 @@ No threads: everything here is called from the loop's thread at start, at 1 Hz o
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import gc
 import json
 import math
 import os
+import signal
 import socket
+import stat
 import sys
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -164,6 +168,102 @@ def _smaps_entries(smaps: str):
         yield entry
 
 
+STATE_FILE_LIMIT = 1 << 20  # bytes: a state file is ~1 kB; anything this big is not one
+TEMPORARY_MARK = ".tmp-"  # .<name>.tmp-XXXX beside the state file while it is written
+LEGACY_TEMPORARY = ".slipd-state-"  # the temporaries' prefix before, for any one state file
+ABANDONED_AFTER_S = 60.0  # a legacy temporary this old was left by a killed writer
+
+
+class StateFileError(ValueError):
+    """A state file that cannot be used (the reason names the file)."""
+
+
+def read_state_document(path: Path) -> dict | None:
+    """The JSON object in a state file, None when there is none; StateFileError when it
+    cannot be one: not a regular file (a directory; a FIFO, which would block start-up),
+    larger than STATE_FILE_LIMIT, not UTF-8, not JSON, nested too deeply, not an object.
+    Integers are read as floats, so a 400-digit one is inf (rejected by the caller as
+    non-finite), not an OverflowError."""
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise StateFileError(f"cannot stat it: {exc.strerror}") from exc
+    if not stat.S_ISREG(info.st_mode):
+        kind = "a directory" if stat.S_ISDIR(info.st_mode) else \
+            "a FIFO" if stat.S_ISFIFO(info.st_mode) else "not a regular file"
+        raise StateFileError(f"it is {kind}")
+    try:  # O_NONBLOCK: a FIFO put there after the stat cannot block start-up either
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        raise StateFileError(f"cannot open it: {exc.strerror}") from exc
+    with os.fdopen(fd, "rb") as handle:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise StateFileError("it is not a regular file")
+        raw = handle.read(STATE_FILE_LIMIT + 1)
+    if len(raw) > STATE_FILE_LIMIT:
+        raise StateFileError(f"it is larger than {STATE_FILE_LIMIT} bytes")
+    try:
+        document = json.loads(raw.decode("utf-8"), parse_int=float)
+    except UnicodeDecodeError as exc:
+        raise StateFileError(f"not UTF-8 ({exc.reason} at byte {exc.start})") from exc
+    except RecursionError as exc:
+        raise StateFileError("nested too deeply") from exc
+    except ValueError as exc:
+        raise StateFileError(f"not JSON ({exc})") from exc
+    if not isinstance(document, dict):
+        raise StateFileError(f"expected a JSON object, found {type(document).__name__}")
+    return document
+
+
+def write_state_document(path: Path, document: dict) -> None:
+    """Write atomically: a temporary beside ``path``, fsync, rename, fsync of the directory.
+    A failure (ENOSPC) removes the temporary and raises the OSError."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}{TEMPORARY_MARK}")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            json.dump(document, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        raise
+    with contextlib.suppress(OSError):
+        directory = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)
+
+
+def remove_stale_temporaries(path: Path) -> int:
+    """Remove what killed writers (SIGKILL, a full disk) left beside ``path``: its own
+    temporaries, and legacy ones older than ABANDONED_AFTER_S. Returns how many."""
+    removed = 0
+    now = time.time()
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:
+        return 0
+    for entry in entries:
+        ours = entry.name.startswith(f".{path.name}{TEMPORARY_MARK}")
+        legacy = entry.name.startswith(LEGACY_TEMPORARY)
+        try:
+            if not (ours or legacy) or not entry.is_file(follow_symlinks=False):
+                continue
+            if legacy and now - entry.stat(follow_symlinks=False).st_mtime < ABANDONED_AFTER_S:
+                continue
+            os.unlink(entry.path)
+            removed += 1
+        except OSError:
+            continue
+    return removed
+
+
 class StateStore:
     """Persisted estimator state (learnt offsets, calibrations) as JSON, written atomically.
 
@@ -180,23 +280,25 @@ class StateStore:
         """Saved {element name: value} for ``method`` under state layout hash ``layout``."""
         if self.path is None:
             return {}, "state persistence off"
-        if not self.path.exists():
-            return {}, f"no saved state at {self.path}"
+        cleaned = remove_stale_temporaries(self.path)
+        note = f" ({cleaned} temporary file(s) of killed writers removed)" if cleaned else ""
         try:
-            document = json.loads(self.path.read_text())
+            document = read_state_document(self.path)
+            if document is None:
+                return {}, f"no saved state at {self.path}{note}"
             if document.get("method") != method:
                 return {}, (f"saved state in {self.path} is for {document.get('method')!r}, "
-                            f"not {method!r}: ignored")
+                            f"not {method!r}: ignored{note}")
             if document.get("layout") != layout:
                 return {}, (f"saved state in {self.path} has state layout "
                             f"{document.get('layout')!r}, this slipd's {method} has {layout!r} "
-                            "(saved by another version): ignored")
+                            f"(saved by another version): ignored{note}")
             values = {str(k): float(v) for k, v in document["state"].items()}
             if any(not math.isfinite(v) for v in values.values()):
                 raise ValueError("non-finite value")
-            return values, f"restored {len(values)} state values from {self.path}"
-        except (ValueError, KeyError, TypeError, AttributeError) as exc:
-            return {}, f"state file {self.path} is corrupt ({exc}): ignored"
+            return values, f"restored {len(values)} state values from {self.path}{note}"
+        except (ValueError, KeyError, TypeError, AttributeError, OverflowError) as exc:
+            return {}, f"state file {self.path} is corrupt ({exc}): ignored{note}"
 
     def save(self, method: str, layout: str, values: dict[str, float]) -> None:
         if self.path is None or not values:
@@ -204,10 +306,4 @@ class StateStore:
         document = {"method": method, "layout": layout,
                     "state": {name: value for name, value in values.items()
                               if math.isfinite(value)}}
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=".slipd-state-")
-        with os.fdopen(fd, "w") as handle:
-            json.dump(document, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, self.path)
+        write_state_document(self.path, document)
