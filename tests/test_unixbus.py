@@ -187,3 +187,24 @@ def test_participants_that_leave_and_join_after_the_sender_connected(bus_dir):
         for bus in (sender, stays, joins):
             if bus is not None:
                 bus.shutdown()
+
+
+def test_a_datagram_that_is_no_can_frame_is_counted_not_a_bus_failure(bus_dir):
+    """A 5-byte datagram on slipd_unix made recv() raise, which the daemon took for a failed
+    bus (outputs invalid until a reopen)."""
+    import socket
+
+    receiver = can.Bus(interface="slipd_unix", channel=bus_dir)
+    sender = can.Bus(interface="slipd_unix", channel=bus_dir)
+    try:
+        stray = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        for junk in (b"\x01\x02\x03\x04\x05", bytes(100), bytes([0] * 4 + [15] + [0] * 11)):
+            stray.sendto(junk, str(receiver.path))
+        stray.close()
+        sender.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
+        received = receiver.recv(1.0)
+        assert received is not None and received.arbitration_id == 0x123
+        assert receiver.malformed == 3
+    finally:
+        receiver.shutdown()
+        sender.shutdown()

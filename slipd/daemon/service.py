@@ -30,6 +30,78 @@ MADV_DONTNEED = 4
 COMPILER_LIBRARIES = ("libllvmlite.so",)
 
 
+LOOP_CPU_ENV = "SLIPD_LOOP_CPU"  # the loop's pinned CPU, for helper processes to avoid
+HELPER_NICE = 10
+
+
+class HelperProcess:
+    """A child started by :func:`spawn_helper` (a ``subprocess.Popen``-like handle)."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+            if pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.poll() is None:
+            if deadline is not None and time.monotonic() >= deadline:
+                raise TimeoutError(f"process {self.pid} still running after {timeout} s")
+            time.sleep(0.01)
+        return self.returncode
+
+    def kill(self) -> None:
+        if self.poll() is None:
+            os.kill(self.pid, signal.SIGKILL)
+
+
+def spawn_helper(argv: list[str], pass_fds: tuple[int, ...] = ()) -> HelperProcess:
+    """Start a helper process (stats server, recorder compressor) from the loop's process.
+
+    ``posix_spawn`` (vfork and exec: no copy of the daemon's page tables, which a fork of a
+    90 MB process with locked memory would make inside the loop's slack) with normal
+    scheduling: a child of a SCHED_FIFO loop would otherwise start at the loop's priority,
+    on its CPU, and run its whole Python start-up before the loop could run again. The child
+    lowers its priority further and leaves the loop's CPU itself (:func:`step_aside`).
+    """
+    for fd in pass_fds:
+        os.set_inheritable(fd, True)
+    try:
+        pid = os.posix_spawn(argv[0], argv, os.environ,
+                             scheduler=(os.SCHED_OTHER, os.sched_param(0)))
+    finally:
+        for fd in pass_fds:
+            os.set_inheritable(fd, False)
+    return HelperProcess(pid)
+
+
+def step_aside() -> None:
+    """In a helper process: normal scheduling at a lower priority, and off the loop's CPU
+    when the loop is pinned (``$SLIPD_LOOP_CPU``, set by :func:`apply_realtime`)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        pass
+    try:
+        os.nice(HELPER_NICE)
+    except OSError:
+        pass
+    loop_cpu = os.environ.get(LOOP_CPU_ENV, "")
+    if loop_cpu.isdigit():
+        others = set(range(os.cpu_count() or 1)) - {int(loop_cpu)}
+        try:
+            if others:
+                os.sched_setaffinity(0, others & os.sched_getaffinity(0) or others)
+        except OSError:
+            pass
+
+
 class SystemdNotifier:
     """sd_notify(3) over $NOTIFY_SOCKET; silent no-op when not started by systemd."""
 
@@ -48,6 +120,11 @@ class SystemdNotifier:
     @property
     def enabled(self) -> bool:
         return self.socket is not None
+
+    def extend_timeout(self, seconds: float) -> None:
+        """EXTEND_TIMEOUT_USEC: the start-up (or stop) may take ``seconds`` more from now,
+        so a numba warm-up on a cold cache does not run into TimeoutStartSec."""
+        self.notify(f"EXTEND_TIMEOUT_USEC={int(seconds * 1e6)}")
 
     def notify(self, text: str) -> None:
         if self.socket is None:
@@ -84,6 +161,7 @@ def apply_realtime(options: RealtimeOptions) -> list[str]:
             os.sched_setaffinity(0, {options.cpu})
         except OSError as exc:
             raise ConfigError(f"CPU affinity {{{options.cpu}}} refused: {exc}") from exc
+        os.environ[LOOP_CPU_ENV] = str(options.cpu)  # helper processes keep off it
         report.append(f"pinned to CPU {options.cpu}")
     if options.mlockall:
         # MCL_ONFAULT locks pages as they are touched instead of faulting in every mapped

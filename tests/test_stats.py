@@ -1,0 +1,317 @@
+"""The daemon's statistics: percentiles against hdrh, the stats server process (unix socket
+and Prometheus through prometheus_client), what a snapshot costs the loop, hostile clients and
+sockets that must not be taken over or destroyed."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import stat
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hdrh.histogram import HdrHistogram
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from prometheus_client.parser import text_string_to_metric_families
+
+from slipd.daemon.stats import (
+    HISTOGRAMS,
+    HistogramTable,
+    Stats,
+    StatsServer,
+    check_stats_socket,
+    clear,
+    new_histogram,
+    parse_prometheus,
+    query,
+    summarize,
+)
+from slipd.errors import ConfigError
+
+TABLE = HistogramTable()
+
+
+def test_table_gives_hdrhs_values_for_every_index():
+    h = new_histogram()
+    sample = np.unique(np.concatenate([np.arange(0, 5000), np.linspace(0, h.counts_len - 1,
+                                                                      3000).astype(int)]))
+    for index in sample:
+        value = h.get_value_from_index(int(index))
+        assert TABLE.lowest[index] == value
+        assert TABLE.highest[index] == h.get_highest_equivalent_value(value)
+        assert TABLE.median[index] == h._hdr_median_equiv_value(value)
+
+
+@settings(max_examples=60, deadline=None)
+@given(values=st.lists(st.integers(1, 60_000_000), min_size=0, max_size=300),
+       heavy=st.integers(1, 2_000_000))
+def test_summary_equals_hdrh(values, heavy):
+    h = new_histogram()
+    for value in values:
+        h.record_value(value)
+    h.record_value(heavy, 50)  # a bulk of one value, as a steady loop records
+    ours = summarize(h)
+    assert ours["count"] == h.get_total_count()
+    for key, percentile in (("p50", 50), ("p90", 90), ("p99", 99), ("p99.9", 99.9)):
+        assert ours[key] == h.get_value_at_percentile(percentile), key
+    assert ours["max"] == h.get_max_value()
+    assert ours["sum"] == pytest.approx(h.get_mean_value() * h.get_total_count(), rel=1e-9)
+    clear(h)
+    assert summarize(h)["count"] == 0 and h.get_max_value() == 0
+
+
+def test_shared_histograms_are_read_by_another_mapping():
+    stats = Stats.in_shared_memory()
+    for value in (100, 200, 300, 40_000):
+        stats.record("cycle_latency_us", value)
+    from slipd.daemon.stats import SharedCounts
+
+    other = SharedCounts(fd=stats.shared.fd)  # what the server process maps
+    counts = other.counts(HISTOGRAMS.index("cycle_latency_us")).astype(np.int64)
+    assert TABLE.summary(counts) == summarize(stats.histograms["cycle_latency_us"])
+    assert TABLE.summary(counts)["count"] == 4
+
+
+class _Loop:
+    """The loop's side of the stats server, polled the way the daemon's slack does."""
+
+    def __init__(self, tmp_path: Path, prometheus: str | None = None, name: str = "stats.sock"):
+        self.stats = Stats.in_shared_memory()
+        self.path = str(tmp_path / name)
+        self.lines: list[str] = []
+        self.server = StatsServer(self.path, parse_prometheus(prometheus) if prometheus else None,
+                                  self.stats, log=self.lines.append)
+        self.server.wait_ready()
+        self.documents = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._poll, daemon=True)
+        self.thread.start()
+
+    def document(self) -> dict:
+        self.documents += 1
+        return self.stats.counters_document({"estimator": "zero", "uptime_s": 1.0,
+                                             "status": 1, "beta_deg": 0.5, "vx_mps": 20.0})
+
+    def _poll(self) -> None:
+        while not self.stop.is_set():
+            self.server.poll(self.document)
+            self.server.poll_health()
+            time.sleep(0.01)  # a tick
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join()
+        self.server.close()
+
+
+@pytest.fixture
+def loop(tmp_path):
+    running = _Loop(tmp_path, prometheus="127.0.0.1:0")
+    yield running
+    running.close()
+
+
+def test_the_loops_answer_never_summarises_a_histogram(loop, monkeypatch):
+    """A snapshot cost the loop 7-9 ms once the histograms had filled (hdrh's Python loops
+    in the loop's thread); now the loop sends the counters only and the server process reads
+    the histograms from shared memory."""
+    for name in HISTOGRAMS:
+        for value in np.random.default_rng(0).lognormal(5, 1, 2000):
+            loop.stats.record(name, value)
+
+    def forbidden(*_args, **_kwargs):
+        raise AssertionError("the loop summarised a histogram")
+
+    for method in ("get_value_at_percentile", "get_percentile_to_value_dict",
+                   "get_max_value", "get_mean_value"):
+        monkeypatch.setattr(HdrHistogram, method, forbidden)
+    monkeypatch.setattr("slipd.daemon.stats.summarize", forbidden)
+    snapshot = query(loop.path)
+    assert snapshot["cycle_latency_us"]["count"] == 2000
+    assert snapshot["counters"]["ticks"] == 0 and snapshot["estimator"] == "zero"
+
+
+def test_a_hundred_concurrent_clients_all_get_an_answer_and_share_the_loops(loop):
+    """100 `slipd stats` at once: 93 failed with EAGAIN on a listen backlog of 4; now they
+    queue, and the loop answers a handful of times for all of them."""
+    results: list[object] = []
+
+    def one() -> None:
+        try:
+            results.append(query(loop.path, timeout=10.0))
+        except OSError as exc:
+            results.append(exc)
+
+    threads = [threading.Thread(target=one) for _ in range(100)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    failures = [r for r in results if isinstance(r, Exception)]
+    assert not failures, failures[:3]
+    assert len(results) == 100
+    assert loop.documents <= 30  # answers are shared, not one per client
+
+
+def test_prometheus_through_prometheus_client_in_seconds(loop):
+    for value in (100, 200, 300, 400):
+        loop.stats.record("cycle_latency_us", value)
+    loop.stats.counters["ticks"] = 7
+    host, port = loop.server.http_address
+    with urllib.request.urlopen(f"http://{host}:{port}/metrics", timeout=5) as reply:
+        text = reply.read().decode()
+    families = {f.name: f for f in text_string_to_metric_families(text)}
+    assert families["slipd_ticks"].samples[0].value == 7  # slipd_ticks_total
+    cycle = families["slipd_cycle_latency_seconds"]
+    assert cycle.type == "summary"
+    quantiles = {s.labels["quantile"]: s.value for s in cycle.samples if "quantile" in s.labels}
+    assert set(quantiles) == {"0.5", "0.9", "0.99", "0.999"}
+    assert quantiles["0.5"] == pytest.approx(200e-6, rel=1e-3)
+    count = [s.value for s in cycle.samples if s.name.endswith("_count")]
+    assert count == [4]
+    assert families["slipd_cycle_latency_max_seconds"].samples[0].value == pytest.approx(
+        400e-6, rel=1e-3)
+    assert families["slipd_beta_radians"].samples[0].value == pytest.approx(np.radians(0.5))
+    assert "slipd_decode_frames" in families
+
+
+def test_the_stats_socket_is_group_readable(loop):
+    mode = os.stat(loop.path).st_mode
+    assert stat.S_ISSOCK(mode) and stat.S_IMODE(mode) == 0o660
+
+
+def test_a_killed_stats_server_is_reported_and_started_again(loop):
+    old = loop.server.process.pid
+    os.kill(old, 9)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        if loop.server.process.pid != old and loop.server._ready:
+            break
+        time.sleep(0.05)
+    assert loop.server.process.pid != old
+    assert query(loop.path)["counters"]["stats_server_restarts"] == 1
+    assert any("stats server stopped" in line for line in loop.lines)
+    assert any("started again" in line for line in loop.lines)
+
+
+def test_the_socket_is_removed_when_the_daemon_dies(tmp_path):
+    """SIGKILL of the daemon: its stats server sees the control socket close and removes
+    its socket file, so the next start finds no stale one."""
+    script = f"""
+import time
+from slipd.daemon.stats import Stats, StatsServer
+server = StatsServer({str(tmp_path / 's.sock')!r}, None, Stats.in_shared_memory())
+server.wait_ready()
+print(server.process.pid, flush=True)
+time.sleep(60)
+"""
+    daemon = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    helper = int(daemon.stdout.readline())
+    assert (tmp_path / "s.sock").exists()
+    daemon.kill()
+    daemon.wait()
+    deadline = time.monotonic() + 10
+    while (tmp_path / "s.sock").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not (tmp_path / "s.sock").exists()
+    with pytest.raises(OSError):
+        for _ in range(200):  # the helper is gone too (reaped by init)
+            os.kill(helper, 0)
+            time.sleep(0.05)
+
+
+def test_the_stats_socket_never_replaces_a_file(tmp_path):
+    """`--stats-socket FILE` deleted whatever FILE was."""
+    precious = tmp_path / "notes.txt"
+    precious.write_text("keep me")
+    with pytest.raises(ConfigError, match="exists and is not a socket"):
+        check_stats_socket(str(precious))
+    assert precious.read_text() == "keep me"
+    with pytest.raises(ConfigError, match="does not exist"):
+        check_stats_socket("/nonexistent/dir/sock")
+
+
+def test_a_second_daemon_does_not_take_over_a_socket_the_first_answers_on(loop, tmp_path):
+    with pytest.raises(ConfigError, match="another slipd answers there"):
+        check_stats_socket(loop.path)
+    assert query(loop.path)["estimator"] == "zero"  # the first still answers
+
+
+def test_a_stale_socket_is_replaced(tmp_path):
+    path = tmp_path / "stale.sock"
+    left = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    left.bind(str(path))
+    left.close()  # bound, never listening: what a killed daemon leaves
+    check_stats_socket(str(path))
+    running = _Loop(tmp_path, name="stale.sock")
+    try:
+        assert query(str(path))["estimator"] == "zero"
+    finally:
+        running.close()
+    assert not path.exists()
+
+
+@pytest.mark.parametrize(("value", "public", "expected"), [
+    ("127.0.0.1:0", False, ("127.0.0.1", 0)),
+    (0, False, ("127.0.0.1", 0)),  # a bare port (TOML `prometheus = 9464`) is loopback
+    ("localhost:0", False, ("localhost", 0)),
+    ("[::1]:0", False, ("::1", 0)),
+])
+def test_prometheus_addresses(value, public, expected):
+    assert parse_prometheus(value, public) == expected
+
+
+@pytest.mark.parametrize(("value", "match"), [
+    ("127.0.0.1:abc", "is not a number"),
+    ("127.0.0.1:70000", "is not a number in 0..65535"),
+    ("0.0.0.0:0", "--prometheus-public"),
+    ("10.1.2.3:0", "--prometheus-public"),
+    ("nohost:0", "not an IP address"),
+    (True, "expected"),
+    (9.5, "expected"),
+])
+def test_bad_prometheus_values_are_clear_errors(value, match):
+    with pytest.raises(ConfigError, match=match):
+        parse_prometheus(value)
+
+
+def test_a_port_in_use_is_a_clear_error():
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        with pytest.raises(ConfigError, match="cannot listen there"):
+            parse_prometheus(f"127.0.0.1:{port}")
+
+
+def test_slipd_stats_into_a_pipe_closed_early(loop):
+    """`slipd stats --json | head -1`: a BrokenPipeError traceback before."""
+    slipd = str(Path(sys.executable).with_name("slipd"))
+    shell = subprocess.run(f"{slipd} stats --socket {loop.path} --json | head -1",
+                           shell=True, capture_output=True, text=True, timeout=60)
+    assert shell.stdout.strip() == "{"
+    assert "Traceback" not in shell.stderr and "BrokenPipe" not in shell.stderr
+
+
+def test_slipd_stats_without_a_daemon_says_so(tmp_path):
+    slipd = str(Path(sys.executable).with_name("slipd"))
+    result = subprocess.run([slipd, "stats", "--socket", str(tmp_path / "none.sock")],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "no daemon answers" in result.stderr
+
+
+def test_json_snapshot_matches_between_loop_and_server(loop):
+    for value in (10, 20, 30):
+        loop.stats.record("compute_us", value)
+    served = query(loop.path)
+    local = loop.stats.snapshot()
+    assert served["compute_us"] == local["compute_us"]
+    assert json.loads(json.dumps(served))["counters"] == local["counters"]
