@@ -21,6 +21,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("slipd.commands.sim", "simulate scenarios: candump log + ground truth"),
     "eval": ("slipd.commands.eval", "evaluate estimators on logs against ground truth"),
     "stats": ("slipd.commands.stats", "show a running daemon's latency statistics"),
+    "warmup": ("slipd.commands.warmup", "compile the daemon's kernels into the numba cache "
+               "(once at install time, so the service starts fast)"),
     "import": ("slipd.commands.import_log", "turn recorded signals (CSV, .mat) into a candump "
                "log through the codec"),
     "profile": ("slipd.commands.profile", "propose a profile from a DBC (scaffold) or check "
