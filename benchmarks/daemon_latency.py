@@ -317,6 +317,10 @@ def print_result(result: dict, duration: float) -> None:
     for line in result["log"].splitlines():  # when each miss happened, and its cause
         if line.startswith("slipd: deadline miss "):
             print(f"    {line}")
+    answers = snap.get("stats_answer_us")
+    if answers and answers["count"]:
+        print(f"  the loop answered the stats server {answers['count']} times: cost us p50 "
+              f"{answers['p50']} p99 {answers['p99']} max {answers['max']}")
     readers = result.get("readers")
     if readers:
         print(f"  stats readers: {readers['queries']} burst queries in {readers['bursts']} "

@@ -4,7 +4,6 @@ sockets that must not be taken over or destroyed."""
 
 from __future__ import annotations
 
-import json
 import os
 import socket
 import stat
@@ -24,8 +23,11 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from slipd.daemon.stats import (
     HISTOGRAMS,
+    RX_IDS_KEPT,
     HistogramTable,
+    SharedStats,
     Stats,
+    StatsLayout,
     StatsServer,
     check_stats_socket,
     clear,
@@ -68,16 +70,35 @@ def test_summary_equals_hdrh(values, heavy):
     assert summarize(h)["count"] == 0 and h.get_max_value() == 0
 
 
-def test_shared_histograms_are_read_by_another_mapping():
-    stats = Stats.in_shared_memory()
+def test_the_shared_block_carries_the_snapshot_to_another_mapping():
+    layout = StatsLayout(rows=("IMU", "unknown"), columns=("accepted", "unknown_id"),
+                         only={"unknown": ("unknown_id",)})
+    stats = Stats.in_shared_memory(layout)
     for value in (100, 200, 300, 40_000):
         stats.record("cycle_latency_us", value)
-    from slipd.daemon.stats import SharedCounts
-
-    other = SharedCounts(fd=stats.shared.fd)  # what the server process maps
+    stats.counters["ticks"] = 42
+    stats.rx_per_id.update({0x100: 7, 0x1ABCDEF0: 2})
+    stats.publish((5, -1.5, 20.0, 9.0), np.array([[11, 0], [0, 3]]), None)
+    other = SharedStats(layout, fd=stats.shared.fd)  # what the server process maps
     counts = other.counts(HISTOGRAMS.index("cycle_latency_us")).astype(np.int64)
     assert TABLE.summary(counts) == summarize(stats.histograms["cycle_latency_us"])
     assert TABLE.summary(counts)["count"] == 4
+    read = other.read()
+    assert read["counters"]["ticks"] == 42 and read["status"] == 5 and read["beta_deg"] == -1.5
+    assert read["decode_errors"] == {"IMU": {"accepted": 11, "unknown_id": 0},
+                                     "unknown": {"unknown_id": 3}}
+    assert read["rx_per_id"] == {"0x100": 7, "0x1abcdef0": 2}
+    stats.rx_per_id.clear()
+    stats.publish((5, -1.5, 20.0, 9.0), None, None)
+    assert other.read()["rx_per_id"] == {}
+
+
+def test_frames_of_more_ids_than_the_block_keeps_are_summed():
+    stats = Stats.in_shared_memory()
+    stats.rx_per_id.update({k: 1 for k in range(RX_IDS_KEPT + 10)})
+    stats.publish((0, 0.0, 0.0, 0.0), None, None)
+    read = SharedStats(fd=stats.shared.fd).read()
+    assert len(read["rx_per_id"]) == RX_IDS_KEPT + 1 and read["rx_per_id"]["other"] == 10
 
 
 class _Loop:
@@ -95,10 +116,10 @@ class _Loop:
         self.thread = threading.Thread(target=self._poll, daemon=True)
         self.thread.start()
 
-    def document(self) -> dict:
+    def document(self, fresh: bool) -> bytes:
         self.documents += 1
-        return self.stats.counters_document({"estimator": "zero", "uptime_s": 1.0,
-                                             "status": 1, "beta_deg": 0.5, "vx_mps": 20.0})
+        return self.stats.publish((1, 0.5, 20.0, 1.0), None,
+                                  {"estimator": "zero"} if fresh else None)
 
     def _poll(self) -> None:
         while not self.stop.is_set():
@@ -126,6 +147,8 @@ def test_the_loops_answer_never_summarises_a_histogram(loop, monkeypatch):
     for name in HISTOGRAMS:
         for value in np.random.default_rng(0).lognormal(5, 1, 2000):
             loop.stats.record(name, value)
+    query(loop.path)  # the first answer carries the words (estimator, events) once
+    time.sleep(0.05)  # older than the server shares
 
     def forbidden(*_args, **_kwargs):
         raise AssertionError("the loop summarised a histogram")
@@ -134,9 +157,12 @@ def test_the_loops_answer_never_summarises_a_histogram(loop, monkeypatch):
                    "get_max_value", "get_mean_value"):
         monkeypatch.setattr(HdrHistogram, method, forbidden)
     monkeypatch.setattr("slipd.daemon.stats.summarize", forbidden)
+    monkeypatch.setattr("json.dumps", forbidden)  # nor encoded its counters as JSON
+    loop.documents = 0
     snapshot = query(loop.path)
     assert snapshot["cycle_latency_us"]["count"] == 2000
     assert snapshot["counters"]["ticks"] == 0 and snapshot["estimator"] == "zero"
+    assert loop.documents >= 1
 
 
 def test_a_hundred_concurrent_clients_all_get_an_answer_and_share_the_loops(loop):
@@ -308,10 +334,50 @@ def test_slipd_stats_without_a_daemon_says_so(tmp_path):
     assert result.returncode == 2 and "no daemon answers" in result.stderr
 
 
-def test_json_snapshot_matches_between_loop_and_server(loop):
-    for value in (10, 20, 30):
-        loop.stats.record("compute_us", value)
-    served = query(loop.path)
-    local = loop.stats.snapshot()
-    assert served["compute_us"] == local["compute_us"]
-    assert json.loads(json.dumps(served))["counters"] == local["counters"]
+def test_the_served_snapshot_is_the_daemons_own(tmp_path):
+    """The document the stats server builds from the shared block equals the one the
+    daemon computes itself (Daemon.snapshot), key for key."""
+    import can
+
+    from slipd.daemon.loop import Daemon, DaemonConfig
+    from slipd.profile import load_profile
+
+    bus = can.Bus(interface="virtual", channel="served")
+    feeder = can.Bus(interface="virtual", channel="served")
+    path = str(tmp_path / "d.sock")
+    daemon = Daemon(DaemonConfig(profile=load_profile("default"), estimator="zero",
+                                 interface="virtual", channel="served", duration=60,
+                                 stats_socket=path), bus=bus, log=lambda _line: None)
+    served: list[dict] = []
+
+    def second(d: Daemon) -> None:  # the loop's thread, in its slack
+        feeder.send(can.Message(arbitration_id=0x123, data=b"\x00", is_extended_id=False))
+        if not d.bus_events:
+            d._bus_event("an event for the words")
+
+    def ask() -> None:  # a client, as `slipd stats` is
+        daemon.ready.wait(60)
+        deadline = time.monotonic() + 30
+        while not daemon.bus_events and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        served.append(query(path))
+        daemon.request_stop()
+
+    daemon.on_second = second
+    client = threading.Thread(target=ask)
+    client.start()
+    try:
+        daemon.run()
+    finally:
+        client.join()
+        bus.shutdown()
+        feeder.shutdown()
+    assert served, "no snapshot served"
+    local = daemon.snapshot()  # after the run: counters went on a little
+    got = served[0]
+    assert set(got) == set(local), set(got) ^ set(local)
+    assert got["decode_errors"] == local["decode_errors"]
+    assert got["bus_events"] == local["bus_events"] and got["rx_per_id"] == local["rx_per_id"]
+    assert got["estimator"] == "zero" and got["recorder"] is None
+    assert got["counters"]["ticks"] <= local["counters"]["ticks"]

@@ -25,7 +25,7 @@ import numpy as np
 
 from slipd.channels import N_OUT, ST_INPUT_TIMEOUT, ST_VALID, In, Out, new_u
 from slipd.codec import N_TX, Codec, DecodeState, Tx
-from slipd.codec.kernels import LATCH_SET, LATCH_TIME
+from slipd.codec.kernels import ERROR_NAMES, LATCH_SET, LATCH_TIME
 from slipd.codec.plan import OUTPUT_MESSAGES
 from slipd.codec.tx import fill_tx
 from slipd.daemon.recorder import FlightRecorder
@@ -38,6 +38,7 @@ from slipd.daemon.service import (
 )
 from slipd.daemon.stats import (
     Stats,
+    StatsLayout,
     StatsServer,
     check_stats_socket,
     clear,
@@ -279,7 +280,9 @@ class Daemon:
             check_stats_socket(config.stats_socket)
         prometheus = (parse_prometheus(config.prometheus, config.prometheus_public)
                       if config.prometheus else None)
-        self.stats = Stats.in_shared_memory() if serve_stats else Stats()
+        errors = (*self.codec.inputs.message_names, "unknown")
+        layout = StatsLayout(rows=errors, columns=ERROR_NAMES, only={"unknown": ("unknown_id",)})
+        self.stats = Stats.in_shared_memory(layout) if serve_stats else Stats()
         self.notifier = SystemdNotifier()
         self.on_second = on_second
         self.running = False
@@ -352,6 +355,8 @@ class Daemon:
         self.bus_events: list[str] = []  # the newest EVENTS_KEPT
         self.tool_events: list[str] = []  # recorder, stats server: faults of the tools
         self.events_dropped = 0
+        self._text_version = 0  # bumped when the snapshot's words change (events)
+        self._text_sent = -1
         #: monotonic time of the last frame received on each bus (None: none yet)
         self.last_frame_at: list[float | None] = [None] * len(self.bus_names)
         self._silence_reported = [False] * len(self.bus_names)
@@ -659,7 +664,6 @@ class Daemon:
         clear(stats.interval)
         stats.interval_misses = 0
         stats.interval_timeouts = 0
-        stats.decode_errors = self.codec.error_counts()
         self._check_bus_health()
         self.server.poll_health()
         if self.recorder is not None:
@@ -719,6 +723,7 @@ class Daemon:
         self.log(line)
 
     def _remember(self, events: list[str], event: str) -> None:
+        self._text_version += 1
         events.append(f"{time.monotonic() - self.started_at:.1f} s: {event}"
                       if self.started_at else event)
         if len(events) > EVENTS_KEPT:
@@ -728,24 +733,34 @@ class Daemon:
     def _recorder_failed(self) -> None:
         self.stats.counters["recorder_errors"] += 1
 
-    def counters_document(self) -> dict:
-        """The snapshot without its histograms: what the stats server asks the loop for
-        (the histograms it reads from shared memory itself)."""
+    def _text_document(self) -> dict:
+        """The snapshot's words (the numbers travel through the shared block)."""
         recorder = None if self.recorder is None else {
             "path": str(self.recorder.path), "status": self.recorder.status}
-        extra = {"estimator": self.config.estimator, "status": self.last_status,
-                 "beta_deg": math.degrees(self.out[Out.BETA]), "vx_mps": self.out[Out.VX],
-                 "uptime_s": time.monotonic() - self.started_at, "bus_events": self.bus_events,
-                 "tool_events": self.tool_events, "events_dropped": self.events_dropped,
-                 "recorder": recorder}
-        self.stats.decode_errors = self.codec.error_counts()
-        return self.stats.counters_document(extra)
+        return {"estimator": self.config.estimator, "bus_events": list(self.bus_events),
+                "tool_events": list(self.tool_events), "events_dropped": self.events_dropped,
+                "recorder": recorder}
+
+    def _gauges(self) -> tuple[float, ...]:
+        return (self.last_status, math.degrees(self.out[Out.BETA]), self.out[Out.VX],
+                time.monotonic() - self.started_at)
+
+    def _publish(self, fresh: bool) -> bytes:
+        """Answer the stats server (StatsServer.poll): counters into the shared block; the
+        words only when they changed since the last answer (or the server is new)."""
+        text = None
+        if fresh or self._text_sent != self._text_version:
+            text = self._text_document()
+            self._text_sent = self._text_version
+        return self.stats.publish(self._gauges(), self.codec.state.errors, text)
 
     def snapshot(self) -> dict:
-        document = self.counters_document()
-        for name, h in self.stats.histograms.items():
-            document[name] = summarize(h)
-        return document
+        """The whole snapshot, computed here (at the end of a run; tests)."""
+        self.stats.decode_errors = self.codec.error_counts()
+        extra = dict(zip(("status", "beta_deg", "vx_mps", "uptime_s"), self._gauges(),
+                         strict=True))
+        extra["status"] = int(extra["status"])
+        return self.stats.snapshot({**extra, **self._text_document()})
 
     def _on_gc(self, phase: str, info: dict) -> None:
         """gc.callbacks hook: every collector pause into the gc_pause_us histogram, so a
@@ -860,7 +875,9 @@ class Daemon:
         if sent >= slack.next_second:
             slack.rejected = self._second(slack.rejected)
             slack.next_second += 1.0
-        self.server.poll(self.counters_document)
+        started = time.perf_counter()
+        if self.server.poll(self._publish):  # measured: what a snapshot costs the loop
+            self.stats.record("stats_answer_us", (time.perf_counter() - started) * 1e6)
         if sent >= slack.next_persist:
             self.save_state()
             slack.next_persist += PERSIST_INTERVAL

@@ -1,15 +1,18 @@
 """Latency statistics and counters, and how they are served without disturbing the loop.
 
 The loop records into HDR histograms (``hdrh``) whose counts live in one shared memory block
-(:class:`SharedCounts`, a memfd). A stats server process (:mod:`slipd.daemon.stats_server`,
+(:class:`SharedStats`, a memfd), beside room for its counters, gauges, the codec's decode
+counts and frames per CAN ID. A stats server process (:mod:`slipd.daemon.stats_server`,
 started and watched by the daemon through :class:`StatsServer`) answers ``slipd stats`` on a
-unix socket and Prometheus scrapes through ``prometheus_client``: it reads the histograms
-from the shared block itself and asks the loop only for the counters, a small JSON document,
-which one answer shares between every client waiting for it. The loop's part of a snapshot is
-then a non-blocking ``recv``/``send`` pair in its slack after a tick, whatever the number of
-clients. Before, the loop summarised the histograms itself: 7-9 ms of pure Python once they
-had filled, a deadline miss per ``slipd stats --watch`` refresh; and a thread serving
-Prometheus in the daemon's process would hold the GIL the loop needs (up to 5 ms a cycle,
+unix socket and Prometheus scrapes through ``prometheus_client``. When it needs a fresh
+snapshot it sends the loop one byte; in its slack after a tick the loop copies its counters
+into the block (:meth:`SharedStats.publish`, a few microseconds: no JSON, no percentiles)
+and answers one byte, plus a short JSON document only when its event lists changed. The
+server summarises the histograms and builds the snapshot itself, and one answer serves every
+client waiting for it. Before, the loop did all of it: 7-9 ms of pure Python once the
+histograms had filled, a deadline miss per ``slipd stats --watch`` refresh; even the JSON of
+the counters alone cost 90-140 us on a loaded 2-vCPU VM. A thread serving Prometheus in the
+daemon's process would hold the GIL the loop needs (up to 5 ms a cycle,
 shared/notes/realtime-python.md).
 
 Percentiles are computed with numpy over the counts (:class:`HistogramTable`), with hdrh's
@@ -39,7 +42,7 @@ from slipd.daemon.service import HelperProcess, spawn_helper
 from slipd.errors import ConfigError
 
 HISTOGRAMS = ("cycle_latency_us", "compute_us", "input_age_us", "wakeup_lateness_us",
-              "gc_pause_us")
+              "gc_pause_us", "stats_answer_us")  # the last: the loop's cost of a snapshot
 HISTOGRAM_LOWEST, HISTOGRAM_HIGHEST, HISTOGRAM_DIGITS = 1, 60_000_000, 3  # 1 us .. 60 s
 PERCENTILES = {"p50": 50.0, "p90": 90.0, "p99": 99.0, "p99.9": 99.9}
 SOCKET_BACKLOG = 128  # `slipd stats` clients queued by the kernel while the server accepts
@@ -87,24 +90,60 @@ class HistogramTable:
         return result
 
 
-class SharedCounts:
-    """The counts of the loop's histograms in one shared memory block (an anonymous memfd,
-    handed to the stats server process by descriptor: no file name to clean up, gone with
-    the last process holding it)."""
+COUNTERS = ("ticks", "deadline_misses", "input_timeouts", "tx_errors", "rx_frames",
+            "rx_overflows", "rx_malformed", "valid_ticks", "gc_full_collections",
+            "recorder_errors", "stats_server_restarts")
+GAUGES = ("status", "beta_deg", "vx_mps", "uptime_s")
+RX_IDS_KEPT = 512  # CAN IDs counted one by one in the block; the rest are summed
 
-    def __init__(self, names: tuple[str, ...] = HISTOGRAMS, fd: int | None = None) -> None:
-        self.names = names
+
+@dataclass(frozen=True)
+class StatsLayout:
+    """What the shared block holds besides the histograms: the decode-count table's row
+    (message) and column (result) names, and for rows listed in ``only`` the columns kept."""
+
+    rows: tuple[str, ...] = ()
+    columns: tuple[str, ...] = ()
+    only: dict[str, tuple[str, ...]] = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps({"rows": self.rows, "columns": self.columns, "only": self.only})
+
+    @classmethod
+    def from_json(cls, text: str) -> StatsLayout:
+        data = json.loads(text)
+        return cls(tuple(data["rows"]), tuple(data["columns"]),
+                   {k: tuple(v) for k, v in data["only"].items()})
+
+
+class SharedStats:
+    """The loop's histograms, counters, gauges, decode counts and frames per CAN ID in one
+    shared memory block (an anonymous memfd, handed to the stats server process by
+    descriptor: no file name to clean up, gone with the last process holding it)."""
+
+    def __init__(self, layout: StatsLayout = StatsLayout(), fd: int | None = None) -> None:
+        self.layout = layout
         self.counts_len = new_histogram().counts_len
-        size = len(names) * self.counts_len * 8
+        sections = [("histograms", np.uint64, (len(HISTOGRAMS), self.counts_len)),
+                    ("counters", np.int64, (len(COUNTERS),)),
+                    ("gauges", np.float64, (len(GAUGES),)),
+                    ("decode", np.int64, (len(layout.rows), len(layout.columns))),
+                    ("rx_ids", np.int64, (RX_IDS_KEPT + 1, 2))]  # (id, count); last: rest
+        size = sum(8 * int(np.prod(shape)) for _, _, shape in sections)
         self.fd = os.memfd_create("slipd-stats", os.MFD_CLOEXEC) if fd is None else fd
         if fd is None:
             os.ftruncate(self.fd, size)
         self.memory = mmap.mmap(self.fd, size)
+        offset = 0
+        for name, dtype, shape in sections:
+            count = int(np.prod(shape))
+            view = np.frombuffer(self.memory, dtype=dtype, count=count, offset=offset)
+            setattr(self, name, view.reshape(shape))
+            offset += 8 * count
 
     def counts(self, index: int) -> np.ndarray:
         """A numpy view of histogram ``index``'s counts (no copy)."""
-        return np.frombuffer(self.memory, dtype=np.uint64, count=self.counts_len,
-                             offset=index * self.counts_len * 8)
+        return self.histograms[index]
 
     def attach(self, index: int) -> HdrHistogram:
         """A histogram recording into the block (hdrh increments ``counts[i]`` in place)."""
@@ -112,6 +151,42 @@ class SharedCounts:
         h.counts = (ctypes.c_uint64 * self.counts_len).from_buffer(
             self.memory, index * self.counts_len * 8)
         return h
+
+    def publish(self, counters: dict[str, int], gauges: tuple[float, ...],
+                decode: np.ndarray | None, rx_per_id: dict[int, int]) -> None:
+        """The loop's part of a snapshot: copy its counters into the block (microseconds)."""
+        self.counters[:] = [counters[name] for name in COUNTERS]
+        self.gauges[:] = gauges
+        if decode is not None and decode.shape == self.decode.shape:
+            self.decode[:] = decode
+        rx = self.rx_ids
+        rx[RX_IDS_KEPT] = (-1, 0)
+        k = -1
+        for k, (frame_id, count) in enumerate(rx_per_id.items()):
+            if k < RX_IDS_KEPT:
+                rx[k] = (frame_id, count)
+            else:
+                rx[RX_IDS_KEPT, 1] += count
+        rx[min(k + 1, RX_IDS_KEPT):RX_IDS_KEPT, 0] = -1
+
+    def read(self) -> dict:
+        """The block's counters as the snapshot shows them (the stats server's side)."""
+        layout = self.layout
+        decode = self.decode.copy()
+        decode_errors = {}
+        for row, message in enumerate(layout.rows):
+            columns = layout.only.get(message, layout.columns)
+            decode_errors[message] = {c: int(decode[row, layout.columns.index(c)])
+                                      for c in columns}
+        rx = self.rx_ids.copy()
+        used = rx[:RX_IDS_KEPT][rx[:RX_IDS_KEPT, 0] >= 0]
+        rx_per_id = {f"{int(i):#x}": int(n) for i, n in sorted(map(tuple, used))}
+        if rx[RX_IDS_KEPT, 1]:
+            rx_per_id["other"] = int(rx[RX_IDS_KEPT, 1])
+        gauges = dict(zip(GAUGES, self.gauges.tolist(), strict=True))
+        gauges["status"] = int(gauges["status"])
+        return {"counters": dict(zip(COUNTERS, self.counters.tolist(), strict=True)),
+                "rx_per_id": rx_per_id, "decode_errors": decode_errors, **gauges}
 
 
 _TABLE: HistogramTable | None = None
@@ -141,13 +216,10 @@ def clear(h: HdrHistogram) -> None:
 
 @dataclass
 class Stats:
-    shared: SharedCounts | None = None
+    shared: SharedStats | None = None
     histograms: dict[str, HdrHistogram] = field(default_factory=dict)
     interval: HdrHistogram = field(default_factory=new_histogram)  # cycle latency, last second
-    counters: dict[str, int] = field(default_factory=lambda: {
-        "ticks": 0, "deadline_misses": 0, "input_timeouts": 0, "tx_errors": 0,
-        "rx_frames": 0, "rx_overflows": 0, "rx_malformed": 0, "valid_ticks": 0,
-        "gc_full_collections": 0, "recorder_errors": 0, "stats_server_restarts": 0})
+    counters: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
     rx_per_id: dict[int, int] = field(default_factory=dict)
     decode_errors: dict[str, dict[str, int]] = field(default_factory=dict)
     interval_misses: int = 0
@@ -161,23 +233,27 @@ class Stats:
         histogram_table()  # built now, not in the loop's first use of it
 
     @classmethod
-    def in_shared_memory(cls) -> Stats:
-        return cls(shared=SharedCounts())
+    def in_shared_memory(cls, layout: StatsLayout = StatsLayout()) -> Stats:
+        return cls(shared=SharedStats(layout))
 
     def record(self, name: str, value_us: float) -> None:
         self.histograms[name].record_value(min(max(1, int(value_us)), HISTOGRAM_HIGHEST))
 
-    def counters_document(self, extra: dict | None = None) -> dict:
-        """Everything but the histograms: what the stats server asks the loop for."""
+    def publish(self, gauges: tuple[float, ...], decode: np.ndarray | None,
+                text: dict | None) -> bytes:
+        """The loop's answer to the stats server: counters into the shared block, and the
+        bytes to send besides (``text`` as JSON, the part that is not numbers)."""
+        self.shared.publish(self.counters, gauges, decode, self.rx_per_id)
+        return json.dumps(text).encode() if text else b""
+
+    def snapshot(self, extra: dict | None = None) -> dict:
+        """The whole snapshot in this process (the end of a run, tests): the stats server
+        builds the same document from the shared block."""
         result = {"counters": dict(self.counters),
                   "rx_per_id": {f"{k:#x}": v for k, v in sorted(self.rx_per_id.items())},
                   "decode_errors": self.decode_errors}
         if extra:
             result.update(extra)
-        return result
-
-    def snapshot(self, extra: dict | None = None) -> dict:
-        result = self.counters_document(extra)
         for name, h in self.histograms.items():
             result[name] = summarize(h)
         return result
@@ -279,6 +355,7 @@ class StatsServer:
         self.answered = 0
         self._restart_at: float | None = None
         self._ready = False
+        self._fresh = True
         self._restarted = False
         self.enabled = bool(unix_path or prometheus)
         if self.enabled:
@@ -290,7 +367,8 @@ class StatsServer:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         command = [sys.executable, "-m", "slipd.daemon.stats_server",
                    "--memory-fd", str(self.stats.shared.fd), "--control-fd", str(theirs.fileno()),
-                   "--socket-mode", oct(self.socket_mode)]
+                   "--socket-mode", oct(self.socket_mode),
+                   "--layout", self.stats.shared.layout.to_json()]
         if self.unix_path:
             command += ["--unix", self.unix_path]
         if self.prometheus:
@@ -329,10 +407,13 @@ class StatsServer:
         if self._restarted:
             self.log("slipd: stats server started again")
         self._ready = True
+        self._fresh = True
 
-    def poll(self, document: Callable[[], dict]) -> int:
-        """Answer the server's pending requests with one document shared by all of them;
-        returns how many requests were answered. Never blocks."""
+    def poll(self, publish: Callable[[bool], bytes]) -> int:
+        """Answer the server's pending requests, all with one answer: ``publish(fresh)``
+        copies the loop's counters into the shared block and returns what to send besides
+        (a JSON document of what changed, or nothing; ``fresh``: the server is new and has
+        none of it yet). Returns how many requests were answered. Never blocks."""
         control = self.control
         if control is None:
             return 0
@@ -356,7 +437,8 @@ class StatsServer:
                 requests += 1
         if requests and self._ready:
             try:
-                control.send(json.dumps(document()).encode())
+                control.send(b"!" + publish(self._fresh))
+                self._fresh = False
                 self.answered += 1
             except (BlockingIOError, InterruptedError):
                 pass  # the server is not reading: it asks again

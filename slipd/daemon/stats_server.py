@@ -5,11 +5,13 @@ Started by the daemon (:class:`slipd.daemon.stats.StatsServer`), never by hand::
     python -m slipd.daemon.stats_server --memory-fd N --control-fd M \\
         [--unix PATH] [--prometheus [HOST]:PORT] [--socket-mode 0o660]
 
-It reads the loop's histograms from the shared memory block (``--memory-fd``) and asks the
-loop for its counters over ``--control-fd`` (one byte; the answer is a JSON document): at
-most one question is outstanding, and every client waiting meanwhile gets the same answer,
-so 100 clients at once cost the loop one answer. Clients of the unix socket get the snapshot
-as one JSON line (as :func:`slipd.daemon.stats.query` reads it); Prometheus gets it through
+It reads the loop's histograms from the shared memory block (``--memory-fd``) and, when it
+needs a fresh snapshot, asks the loop over ``--control-fd`` (one byte) to copy its counters
+into the block; the loop answers one byte, plus a JSON document of its words (events,
+recorder status) when they changed. At most one question is outstanding, and every client
+waiting meanwhile gets the same answer, so 100 clients at once cost the loop one answer.
+Clients of the unix socket get the snapshot as one JSON line (as
+:func:`slipd.daemon.stats.query` reads it); Prometheus gets it through
 ``prometheus_client`` (latencies in seconds, as Prometheus' conventions say). Threads are
 fine here: this process has its own GIL. It runs at a lower priority than the loop, off the
 loop's CPU when the loop is pinned, and ends when the daemon closes its end of the control
@@ -19,6 +21,7 @@ socket (or dies), removing its socket file.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -36,7 +39,8 @@ from slipd.daemon.stats import (
     HISTOGRAMS,
     PERCENTILES,
     SOCKET_BACKLOG,
-    SharedCounts,
+    SharedStats,
+    StatsLayout,
     check_stats_socket,
     histogram_table,
 )
@@ -63,9 +67,10 @@ COUNTER_HELP = {
 class SnapshotSource:
     """The latest snapshot, asked for from the loop when a client needs a fresh one."""
 
-    def __init__(self, control: socket.socket, shared: SharedCounts) -> None:
+    def __init__(self, control: socket.socket, shared: SharedStats) -> None:
         self.control = control
         self.shared = shared
+        self.words: dict = {}  # the loop's last text document (events, recorder, ...)
         self.table = histogram_table()
         self.changed = threading.Condition()
         self.latest: dict | None = None
@@ -103,7 +108,9 @@ class SnapshotSource:
                 return
             if not message:
                 return
-            document = json.loads(message)
+            if len(message) > 1:  # b"!" + the words, when they changed
+                self.words = json.loads(message[1:])
+            document = {**self.shared.read(), **self.words}
             for index, name in enumerate(HISTOGRAMS):
                 counts = self.shared.counts(index).astype(np.int64)
                 document[name] = self.table.summary(counts)
@@ -213,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--unix")
     parser.add_argument("--prometheus")
     parser.add_argument("--socket-mode", type=lambda text: int(text, 0), default=0o660)
+    parser.add_argument("--layout", default=StatsLayout().to_json())
     args = parser.parse_args(argv)
     # The daemon stops this process by closing the control socket; a terminal's Ctrl-C or
     # systemd's stop signal to the whole group must not remove the socket under it first.
@@ -220,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     step_aside()
     control = socket.socket(fileno=args.control_fd)
-    source = SnapshotSource(control, SharedCounts(fd=args.memory_fd))
+    source = SnapshotSource(control, SharedStats(StatsLayout.from_json(args.layout),
+                                                 fd=args.memory_fd))
     unix_server = http_server = None
     bound: dict = {}
     try:
@@ -238,11 +247,17 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ConfigError) as exc:
         where = args.unix if unix_server is None and args.unix else args.prometheus
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-        control.send(f"error:cannot serve on {where}: {reason}".encode())
+        with contextlib.suppress(OSError):  # the daemon may be gone already
+            control.send(f"error:cannot serve on {where}: {reason}".encode())
         if unix_server is not None:
             unix_server.remove_socket_file()
         return 1
-    control.send(b"ready" + json.dumps(bound).encode())
+    try:
+        control.send(b"ready" + json.dumps(bound).encode())
+    except OSError:  # the daemon stopped before this server was up
+        if unix_server is not None:
+            unix_server.remove_socket_file()
+        return 0
     if unix_server is not None:
         threading.Thread(target=unix_server.serve_forever, daemon=True).start()
     try:
