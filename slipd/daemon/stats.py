@@ -29,6 +29,7 @@ import mmap
 import os
 import socket
 import stat
+import struct
 import sys
 import time
 from collections.abc import Callable
@@ -124,7 +125,8 @@ class SharedStats:
     def __init__(self, layout: StatsLayout = StatsLayout(), fd: int | None = None) -> None:
         self.layout = layout
         self.counts_len = new_histogram().counts_len
-        sections = [("histograms", np.uint64, (len(HISTOGRAMS), self.counts_len)),
+        sections = [("sequence", np.int64, (2,)),  # [requested, answered]: see StatsServer
+                    ("histograms", np.uint64, (len(HISTOGRAMS), self.counts_len)),
                     ("counters", np.int64, (len(COUNTERS),)),
                     ("gauges", np.float64, (len(GAUGES),)),
                     ("decode", np.int64, (len(layout.rows), len(layout.columns))),
@@ -135,11 +137,29 @@ class SharedStats:
             os.ftruncate(self.fd, size)
         self.memory = mmap.mmap(self.fd, size)
         offset = 0
+        offsets = {}
         for name, dtype, shape in sections:
             count = int(np.prod(shape))
             view = np.frombuffer(self.memory, dtype=dtype, count=count, offset=offset)
             setattr(self, name, view.reshape(shape))
+            offsets[name] = offset
             offset += 8 * count
+        # publish() writes with as few calls as it can (it runs in the loop, on cold caches:
+        # each numpy call there cost ~10 us measured): counters and gauges are adjacent, one
+        # struct.pack_into; the decode table one buffer copy; the CAN IDs one pack_into
+        self._numbers = struct.Struct(f"={len(COUNTERS)}q{len(GAUGES)}d")
+        self._numbers_at = offsets["counters"]
+        view = memoryview(self.memory)
+        #: [requested, answered] as Python ints without a numpy call: the loop reads it
+        #: every tick (~50 ns)
+        self.sequence_words = view[:16].cast("q")
+        self._decode_bytes = view[offsets["decode"]:offsets["rx_ids"]]
+        self._rx_at = offsets["rx_ids"]
+        self._rx_structs: dict[int, struct.Struct] = {}
+        self._rx_used = 0  # entries that may hold an ID
+        self._rx_rest = struct.Struct("=qq")
+        if fd is None:
+            self.rx_ids[:, 0] = -1  # no ID yet (0 is one)
 
     def counts(self, index: int) -> np.ndarray:
         """A numpy view of histogram ``index``'s counts (no copy)."""
@@ -149,25 +169,31 @@ class SharedStats:
         """A histogram recording into the block (hdrh increments ``counts[i]`` in place)."""
         h = new_histogram()
         h.counts = (ctypes.c_uint64 * self.counts_len).from_buffer(
-            self.memory, index * self.counts_len * 8)
+            self.histograms[index])
         return h
 
     def publish(self, counters: dict[str, int], gauges: tuple[float, ...],
                 decode: np.ndarray | None, rx_per_id: dict[int, int]) -> None:
-        """The loop's part of a snapshot: copy its counters into the block (microseconds)."""
-        self.counters[:] = [counters[name] for name in COUNTERS]
-        self.gauges[:] = gauges
-        if decode is not None and decode.shape == self.decode.shape:
-            self.decode[:] = decode
-        rx = self.rx_ids
-        rx[RX_IDS_KEPT] = (-1, 0)
-        k = -1
-        for k, (frame_id, count) in enumerate(rx_per_id.items()):
-            if k < RX_IDS_KEPT:
-                rx[k] = (frame_id, count)
-            else:
-                rx[RX_IDS_KEPT, 1] += count
-        rx[min(k + 1, RX_IDS_KEPT):RX_IDS_KEPT, 0] = -1
+        """The loop's part of a snapshot: copy its counters into the block (microseconds).
+        ``counters`` in COUNTERS' order (Stats makes it so); ``decode`` C-contiguous int64
+        of the layout's shape, or None."""
+        self._numbers.pack_into(self.memory, self._numbers_at, *counters.values(), *gauges)
+        if decode is not None and decode.nbytes == len(self._decode_bytes):
+            self._decode_bytes[:] = memoryview(decode).cast("B")
+        items = rx_per_id.items()
+        if len(items) > RX_IDS_KEPT:
+            kept = list(items)[:RX_IDS_KEPT]
+            rest = sum(count for _, count in list(items)[RX_IDS_KEPT:])
+        else:
+            kept, rest = items, 0
+        flat = [value for item in kept for value in item]
+        flat += [-1, 0] * (RX_IDS_KEPT - len(kept)) if self._rx_used > len(kept) else []
+        self._rx_used = len(kept)
+        layout = self._rx_structs.get(len(flat))
+        if layout is None:
+            layout = self._rx_structs[len(flat)] = struct.Struct(f"={len(flat)}q")
+        layout.pack_into(self.memory, self._rx_at, *flat)
+        self._rx_rest.pack_into(self.memory, self._rx_at + 16 * RX_IDS_KEPT, -1, rest)
 
     def read(self) -> dict:
         """The block's counters as the snapshot shows them (the stats server's side)."""
@@ -333,9 +359,16 @@ class StatsServer:
 
     The server binds the unix socket and the Prometheus address itself and reports ``ready``
     (with the bound addresses) or an error over a SOCK_SEQPACKET pair; ``wait_ready`` reads
-    that once, before the loop starts. ``poll`` never blocks: a request is one byte, the
-    answer the counters document. A server that exits is reported and started again after
-    RESTART_DELAY_S (``poll_health``, once a second); the loop never waits for it.
+    that once, before the loop starts. Requests and answers are two numbers in the shared
+    block (``sequence``: requested, answered): the server raises ``requested``; the loop's
+    ``poll``, every tick, compares it with what it last answered (a memory read, no system
+    call) and when they differ publishes its counters into the block and sets ``answered``
+    (the server polls it). The pair carries only what is not a number, and only when it
+    changed (the loop's words: events, recorder status). Measured on this project's VMs, a
+    socket round trip cost the loop p50 64 us in the running daemon (cold caches after
+    ~9 ms of sleep), the shared-memory answer a few us. A server that exits is reported and
+    started again after RESTART_DELAY_S (``poll_health``, once a second); the loop never
+    waits for it.
     """
 
     RESTART_DELAY_S = 5.0
@@ -361,6 +394,7 @@ class StatsServer:
         if self.enabled:
             if stats.shared is None:
                 raise ValueError("the stats server needs Stats.in_shared_memory()")
+            self._sequence = stats.shared.sequence_words
             self._start()
 
     def _start(self) -> None:
@@ -410,41 +444,31 @@ class StatsServer:
         self._fresh = True
 
     def poll(self, publish: Callable[[bool], bytes]) -> int:
-        """Answer the server's pending requests, all with one answer: ``publish(fresh)``
-        copies the loop's counters into the shared block and returns what to send besides
-        (a JSON document of what changed, or nothing; ``fresh``: the server is new and has
-        none of it yet). Returns how many requests were answered. Never blocks."""
-        control = self.control
-        if control is None:
+        """Answer the server's request, if it made one since the last answer: ``publish(
+        fresh)`` copies the loop's counters into the shared block and returns the words to
+        send besides (JSON, or b"" when they did not change; ``fresh``: the server is new).
+        Returns 1 when it answered. Never blocks; no system call unless there are words."""
+        if not self._ready:
             return 0
-        requests = 0
-        while True:
+        sequence = self._sequence
+        if sequence[0] == sequence[1]:
+            return 0
+        requested = sequence[0]
+        words = publish(self._fresh)
+        if words:
             try:
-                message = control.recv(65536)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                message = b""
-            if not message:  # the server is gone: poll_health starts it again
-                self._lost("it exited")
-                return 0
-            if message.startswith(b"ready"):
-                self._on_ready(message)
-            elif message.startswith(b"error:"):
-                self._lost(message.decode(errors="replace").removeprefix("error:"))
-                return 0
-            else:
-                requests += 1
-        if requests and self._ready:
-            try:
-                control.send(b"!" + publish(self._fresh))
+                self.control.send(words)
                 self._fresh = False
-                self.answered += 1
             except (BlockingIOError, InterruptedError):
-                pass  # the server is not reading: it asks again
+                pass  # sent again with the next answer (still not fresh)
             except OSError:
                 self._lost("it stopped reading")
-        return requests
+                return 0
+        else:
+            self._fresh = False
+        sequence[1] = requested  # after the block is written: the server reads it then
+        self.answered += 1
+        return 1
 
     def _lost(self, why: str) -> None:
         if self.control is None:
@@ -465,6 +489,19 @@ class StatsServer:
         if self.control is not None and self.process is not None and \
                 self.process.poll() is not None:
             self._lost("it exited")
+        if self.control is not None and not self._ready:  # a new server's ready, or error
+            try:
+                message = self.control.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                message = None
+            except OSError:
+                message = b""
+            if message is not None:
+                if message.startswith(b"ready"):
+                    self._on_ready(message)
+                else:
+                    self._lost(message.decode(errors="replace").removeprefix("error:")
+                               or "it exited")
         if self._restart_at is not None and time.monotonic() >= self._restart_at:
             self._restart_at = None
             if self.process is not None:

@@ -6,10 +6,11 @@ Started by the daemon (:class:`slipd.daemon.stats.StatsServer`), never by hand::
         [--unix PATH] [--prometheus [HOST]:PORT] [--socket-mode 0o660]
 
 It reads the loop's histograms from the shared memory block (``--memory-fd``) and, when it
-needs a fresh snapshot, asks the loop over ``--control-fd`` (one byte) to copy its counters
-into the block; the loop answers one byte, plus a JSON document of its words (events,
-recorder status) when they changed. At most one question is outstanding, and every client
-waiting meanwhile gets the same answer, so 100 clients at once cost the loop one answer.
+needs a fresh snapshot, asks the loop through the block (``requested``) to copy its counters
+there; the loop sets ``answered`` when it has, and sends a JSON document of its words
+(events, recorder status) over ``--control-fd`` only when they changed. At most one
+question is outstanding, and every client waiting meanwhile gets the same answer, so 100
+clients at once cost the loop one answer.
 Clients of the unix socket get the snapshot as one JSON line (as
 :func:`slipd.daemon.stats.query` reads it); Prometheus gets it through
 ``prometheus_client`` (latencies in seconds, as Prometheus' conventions say). Threads are
@@ -65,17 +66,25 @@ COUNTER_HELP = {
 
 
 class SnapshotSource:
-    """The latest snapshot, asked for from the loop when a client needs a fresh one."""
+    """The latest snapshot, asked for from the loop when a client needs a fresh one.
+
+    Clients call :meth:`get`; one collector thread makes the requests (the shared block's
+    ``requested`` number), waits for the loop's ``answered`` and builds the snapshot, so a
+    crowd of clients costs the loop one answer. :meth:`run` (the main thread) reads the
+    loop's words from the control socket until the daemon closes it."""
+
+    ANSWER_POLL_S = 0.0005
 
     def __init__(self, control: socket.socket, shared: SharedStats) -> None:
         self.control = control
         self.shared = shared
-        self.words: dict = {}  # the loop's last text document (events, recorder, ...)
+        self.words: dict = {}  # the loop's last words (estimator, events, recorder)
         self.table = histogram_table()
         self.changed = threading.Condition()
         self.latest: dict | None = None
         self.latest_at = -1.0
-        self.asked_at: float | None = None
+        self.wanted = threading.Event()
+        threading.Thread(target=self._collect, daemon=True).start()
 
     def get(self) -> dict:
         """A snapshot no older than SHARE_AGE_S, or the newest one with ``stale_s`` when the
@@ -84,12 +93,7 @@ class SnapshotSource:
             now = time.monotonic()
             if self.latest is not None and now - self.latest_at <= SHARE_AGE_S:
                 return self.latest
-            if self.asked_at is None or now - self.asked_at > LOOP_PATIENCE_S:
-                self.asked_at = now
-                try:
-                    self.control.send(b"?")
-                except OSError:
-                    pass  # the daemon is gone; run() ends this process
+            self.wanted.set()
             self.changed.wait_for(lambda: self.latest_at >= now, timeout=LOOP_PATIENCE_S)
             if self.latest_at >= now:
                 return self.latest
@@ -97,8 +101,47 @@ class SnapshotSource:
                 return dict(self.latest, stale_s=round(time.monotonic() - self.latest_at, 3))
             raise TimeoutError(f"the daemon's loop did not answer within {LOOP_PATIENCE_S} s")
 
+    def _collect(self) -> None:
+        sequence = self.shared.sequence_words
+        while True:
+            self.wanted.wait()
+            self.wanted.clear()
+            target = sequence[0] + 1
+            sequence[0] = target  # the loop answers in its slack after the next tick
+            deadline = time.monotonic() + LOOP_PATIENCE_S
+            while sequence[1] != target and time.monotonic() < deadline:
+                time.sleep(self.ANSWER_POLL_S)
+            if sequence[1] != target:
+                continue  # the loop is stalled (or stopped): clients get the stale one
+            self._drain_words()
+            document = {**self.shared.read(), **self.words}
+            for index, name in enumerate(HISTOGRAMS):
+                counts = self.shared.counts(index).astype(np.int64)
+                document[name] = self.table.summary(counts)
+            with self.changed:
+                self.latest = document
+                self.latest_at = time.monotonic()
+                self.changed.notify_all()
+
+    def _drain_words(self) -> None:
+        """Words the loop sent with this answer (it sends them before it sets answered);
+        the main thread may have read them first (run), either stores them."""
+        while True:
+            try:
+                message = self.control.recv(1 << 22, socket.MSG_DONTWAIT)
+            except OSError:  # BlockingIOError: none waiting
+                return
+            if not message:
+                return
+            self._store_words(message)
+
+    def _store_words(self, message: bytes) -> None:
+        words = json.loads(message)
+        with self.changed:
+            self.words = words
+
     def run(self) -> None:
-        """Read the loop's answers until it closes the control socket."""
+        """Read the loop's words until the daemon closes the control socket (or dies)."""
         while True:
             try:
                 message = self.control.recv(1 << 22)
@@ -108,17 +151,7 @@ class SnapshotSource:
                 return
             if not message:
                 return
-            if len(message) > 1:  # b"!" + the words, when they changed
-                self.words = json.loads(message[1:])
-            document = {**self.shared.read(), **self.words}
-            for index, name in enumerate(HISTOGRAMS):
-                counts = self.shared.counts(index).astype(np.int64)
-                document[name] = self.table.summary(counts)
-            with self.changed:
-                self.latest = document
-                self.latest_at = time.monotonic()
-                self.asked_at = None
-                self.changed.notify_all()
+            self._store_words(message)
 
 
 class UnixStatsServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
