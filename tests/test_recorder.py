@@ -103,3 +103,18 @@ def test_compression_cut_short_leaves_a_replayable_plain_file(tmp_path):
     assert not partial.exists() and plain.exists()
     assert compress(plain) == 0
     assert not plain.exists() and len(read_frames(tmp_path / "flight.1.log.gz")) == 1
+
+
+def test_a_daemon_whose_recorder_cannot_open_still_starts(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    bus = can.Bus(interface="virtual", channel="rec-open")
+    logged: list[str] = []
+    config = DaemonConfig(profile=PROFILE, estimator="zero", interface="virtual",
+                          channel="rec-open", duration=0.5, recorder=blocker / "flight.log")
+    try:
+        final = Daemon(config, bus=bus, log=logged.append).run()
+    finally:
+        bus.shutdown()
+    assert final["counters"]["ticks"] > 20 and final["counters"]["recorder_errors"] == 1
+    assert final["recorder"]["status"].startswith("stopped: cannot create the directory of")

@@ -113,3 +113,92 @@ def test_slipd_warmup_fills_the_cache_without_a_bus(tmp_path):
                             text=True, timeout=600, env=dict(os.environ))
     assert result.returncode == 0, result.stderr  # no CAN in this kernel: no bus was opened
     assert "zero:" in result.stdout and "done in" in result.stdout
+
+
+def _expand(group: str, seen: set[str]) -> set[str]:
+    """The system calls of a systemd filter set (@group, expanded recursively) or one call."""
+    import subprocess
+
+    if not group.startswith("@"):
+        return {group}
+    if group in seen:
+        return set()
+    seen.add(group)
+    listing = subprocess.run(["systemd-analyze", "syscall-filter", group], capture_output=True,
+                             text=True, timeout=60, check=True).stdout
+    calls: set[str] = set()
+    for line in listing.splitlines()[1:]:
+        word = line.strip()
+        if not word or word.startswith("#"):
+            continue
+        calls |= _expand(word, seen)
+    return calls
+
+
+def _allowed_system_calls() -> set[str]:
+    """The unit's SystemCallFilter= lines applied in order: the first allow list sets the
+    calls, a ~ line removes from them, a later allow line adds back."""
+    allowed: set[str] = set()
+    for value in re.findall(r"^SystemCallFilter=(.+)$", UNIT.read_text(), re.M):
+        deny = value.startswith("~")
+        calls = set()
+        for word in value.lstrip("~").split():
+            calls |= _expand(word, set())
+        allowed = allowed - calls if deny else allowed | calls
+    return allowed
+
+
+@needs_analyze
+@pytest.mark.skipif(shutil.which("strace") is None,
+                    reason="strace not installed (.ci/vm-setup installs it)")
+def test_the_daemon_and_its_helpers_use_only_system_calls_the_unit_allows(tmp_path):
+    """systemd kills a process that makes a call outside SystemCallFilter=; the daemon's
+    helpers (stats server, recorder compressor) run under the same filter. nice(2) in them
+    was such a call (setpriority is in the @resources the unit denies)."""
+    import os
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    from slipd.daemon.stats import query
+
+    sock = str(tmp_path / "stats.sock")
+    (tmp_path / "none.toml").write_text("")
+    trace = tmp_path / "strace.txt"
+    command = ["strace", "-f", "-qq", "-c", "-o", str(trace),
+               str(Path(sys.executable).with_name("slipd")), "run", "--config",
+               str(tmp_path / "none.toml"), "--interface", "virtual", "--channel", "filter",
+               "--duration", "8", "--stats-socket", sock, "--prometheus", "127.0.0.1:0",
+               "--recorder", str(tmp_path / "rec" / "flight.log"), "--recorder-max-mb",
+               "0.01", "--state-file", str(tmp_path / "state.json")]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    daemon = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True, env=env)
+
+    def ask() -> None:
+        deadline = time.monotonic() + 120
+        while not os.path.exists(sock) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(1.0)
+        for _ in range(3):
+            try:
+                query(sock, timeout=10)
+            except OSError:
+                pass
+            time.sleep(0.5)
+
+    client = threading.Thread(target=ask)
+    client.start()
+    output = daemon.communicate(timeout=600)[0]
+    client.join()
+    assert daemon.returncode == 0, output[-3000:]
+    used = set()
+    for line in trace.read_text().splitlines():
+        words = line.split()
+        if words and words[-1].isidentifier() and words[-1] not in ("syscall", "total"):
+            used.add(words[-1])
+    assert len(used) > 30, trace.read_text()[-2000:]
+    forbidden = used - _allowed_system_calls()
+    assert not forbidden, f"calls the unit's filter forbids: {sorted(forbidden)}"
+    assert any(p.name.endswith(".gz") for p in (tmp_path / "rec").iterdir())  # compressed

@@ -66,7 +66,7 @@ def _prometheus(value: object) -> str | int:
 #: config-file keys (the options' names, with underscores) and their checks
 CONFIG_KEYS: dict[str, Callable[[object], object]] = {
     "profile": _text, "interface": _text, "channel": _text, "estimator": _text,
-    "recorder": _text, "recorder_max_mb": _number(1, 1 << 20, " MB"),
+    "recorder": _text, "recorder_max_mb": _number(0.01, 1 << 20, " MB"),
     "recorder_keep": _integer(0, 10_000, " rotated files"), "recorder_compress": _flag,
     "stats_socket": _text, "stats_socket_mode": _integer(0, 0o777, " (e.g. 0o660)"),
     "prometheus": _prometheus, "prometheus_public": _flag, "state_file": _text,

@@ -9,7 +9,7 @@ Files: ``PATH`` (say ``flight.log``) is the file being written. It rotates by si
 ``flight.1.log.gz``, ``flight.2.log.gz``, ... (at most ``keep`` of them; the oldest goes), and
 a recording found at ``PATH`` when the daemon starts (the run before, say the one that
 crashed and made systemd restart it) is rotated the same way, never overwritten. Rotated
-files are compressed by a child process at a low priority, off the loop: gzip of a 256 MB
+files are compressed by a child process at SCHED_IDLE, off the loop: gzip of a 256 MB
 file takes seconds of CPU. An interrupted compression leaves the plain ``flight.1.log``,
 which replays as well.
 
@@ -187,7 +187,7 @@ class FlightRecorder:
 def compress(source: Path) -> int:
     """``flight.1.log`` -> ``flight.1.log.gz`` (through a ``.partial`` file renamed when
     complete, so a cut-short run never leaves a truncated .gz), then remove the source."""
-    step_aside()
+    step_aside(os.SCHED_IDLE)  # compress only when nothing else wants the CPU
     target = source.with_name(source.name + COMPRESSED)
     partial = target.with_name(target.name + PARTIAL)
     try:

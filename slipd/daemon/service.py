@@ -31,7 +31,6 @@ COMPILER_LIBRARIES = ("libllvmlite.so",)
 
 
 LOOP_CPU_ENV = "SLIPD_LOOP_CPU"  # the loop's pinned CPU, for helper processes to avoid
-HELPER_NICE = 10
 
 
 class HelperProcess:
@@ -68,7 +67,7 @@ def spawn_helper(argv: list[str], pass_fds: tuple[int, ...] = ()) -> HelperProce
     90 MB process with locked memory would make inside the loop's slack) with normal
     scheduling: a child of a SCHED_FIFO loop would otherwise start at the loop's priority,
     on its CPU, and run its whole Python start-up before the loop could run again. The child
-    lowers its priority further and leaves the loop's CPU itself (:func:`step_aside`).
+    lowers its policy further and leaves the loop's CPU itself (:func:`step_aside`).
     """
     for fd in pass_fds:
         os.set_inheritable(fd, True)
@@ -81,15 +80,14 @@ def spawn_helper(argv: list[str], pass_fds: tuple[int, ...] = ()) -> HelperProce
     return HelperProcess(pid)
 
 
-def step_aside() -> None:
-    """In a helper process: normal scheduling at a lower priority, and off the loop's CPU
-    when the loop is pinned (``$SLIPD_LOOP_CPU``, set by :func:`apply_realtime`)."""
+def step_aside(policy: int = os.SCHED_BATCH) -> None:
+    """In a helper process: a scheduling policy below the loop's, and off the loop's CPU when
+    the loop is pinned (``$SLIPD_LOOP_CPU``, set by :func:`apply_realtime`). SCHED_BATCH never
+    preempts a task on waking (the stats server); SCHED_IDLE runs only on an otherwise idle
+    CPU (the recorder's compressor). Not nice(2): the unit's system-call filter forbids
+    setpriority, and a forbidden call kills the process."""
     try:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except OSError:
-        pass
-    try:
-        os.nice(HELPER_NICE)
+        os.sched_setscheduler(0, policy, os.sched_param(0))
     except OSError:
         pass
     loop_cpu = os.environ.get(LOOP_CPU_ENV, "")
