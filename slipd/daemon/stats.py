@@ -548,6 +548,9 @@ def query(unix_path: str, timeout: float = 2.0) -> dict:
                 chunks.append(chunk)
         finally:
             client.close()
+        if not chunks:  # accepted, then closed: the daemon (and its server) stopping
+            raise OSError(errno.ECONNRESET, "the stats server closed the connection without "
+                                            "an answer (is the daemon stopping?)")
         document = json.loads(b"".join(chunks))
         if "error" in document and "counters" not in document:
             raise OSError(errno.EIO, document["error"])
