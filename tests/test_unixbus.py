@@ -208,3 +208,24 @@ def test_a_datagram_that_is_no_can_frame_is_counted_not_a_bus_failure(bus_dir):
     finally:
         receiver.shutdown()
         sender.shutdown()
+
+
+def test_frames_behind_a_malformed_datagram_are_read_at_once(bus_dir):
+    """A poll (timeout 0) must not stop at a malformed datagram: the frames queued behind it
+    would wait for the next poll (the daemon's late drain took that as an empty queue)."""
+    import socket
+
+    receiver = can.Bus(interface="slipd_unix", channel=bus_dir)
+    sender = can.Bus(interface="slipd_unix", channel=bus_dir)
+    try:
+        stray = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        stray.sendto(b"\x05", str(receiver.path))
+        stray.close()
+        sender.send(can.Message(arbitration_id=0x7, data=b"\x01", is_extended_id=False))
+        time.sleep(0.05)
+        received = receiver.recv(0.0)
+        assert received is not None and received.arbitration_id == 0x7
+        assert receiver.malformed == 1
+    finally:
+        receiver.shutdown()
+        sender.shutdown()

@@ -241,23 +241,23 @@ class UnixDatagramBus(can.BusABC):
         if not self.receive:
             raise can.CanOperationError(f"{self.channel_info}: this participant was opened "
                                         "send-only (receive=False)")
-        try:
-            datagram, ancillary, flags, _ = self.socket.recvmsg(FD.size + 1, TIMESTAMP_SPACE)
-        except BlockingIOError:
-            if timeout is not None and timeout <= 0:
-                return None, False
-            readable, _, _ = select.select([self.socket], [], [], timeout)
-            if not readable:
-                return None, False
+        waited = False
+        while True:
             try:
                 datagram, ancillary, flags, _ = self.socket.recvmsg(FD.size + 1,
                                                                     TIMESTAMP_SPACE)
             except BlockingIOError:
-                return None, False
-        if len(datagram) not in (CLASSIC.size, FD.size) or flags & socket.MSG_TRUNC or \
-                not _lengths_fit(datagram):
-            self.malformed += 1  # python-can's recv() asks again while time is left
-            return None, False
+                if waited or (timeout is not None and timeout <= 0):
+                    return None, False
+                readable, _, _ = select.select([self.socket], [], [], timeout)
+                if not readable:
+                    return None, False
+                waited = True  # once: python-can's recv() owns the rest of the timeout
+                continue
+            if len(datagram) in (CLASSIC.size, FD.size) and not flags & socket.MSG_TRUNC \
+                    and _lengths_fit(datagram):
+                break
+            self.malformed += 1  # and the next datagram, at once: frames may wait behind it
         stamp = time.time()
         for level, kind, value in ancillary:
             if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
