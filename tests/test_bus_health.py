@@ -76,25 +76,31 @@ def test_drops_malformed_datagrams_and_silence_are_counted_and_logged():
 
 
 def test_frames_again_after_a_silence_is_logged():
+    import threading
+
     feeder = can.Bus(interface="virtual", channel="health-again")
     bus = can.Bus(interface="virtual", channel="health-again")
     logged: list[str] = []
     config = DaemonConfig(profile=PROFILE, estimator="zero", interface="virtual",
-                          channel="health-again", duration=3.5, silence_warning_s=1.0)
+                          channel="health-again", duration=4.0, silence_warning_s=1.0)
     daemon = Daemon(config, bus=bus, log=logged.append)
 
-    def feed_late(d: Daemon) -> None:  # on_second: frames from 2 s on
-        if time.monotonic() - d.started_at > 1.9:
-            for _ in range(3):
-                feeder.send(can.Message(arbitration_id=0x100, data=bytes(8),
-                                        is_extended_id=False))
+    def feed_late() -> None:  # silent for 2 s, then a frame every 10 ms
+        daemon.ready.wait(60)
+        time.sleep(2.0)
+        while daemon.running:
+            feeder.send(can.Message(arbitration_id=0x100, data=bytes(8), is_extended_id=False))
+            time.sleep(0.01)
 
-    daemon.on_second = feed_late
+    thread = threading.Thread(target=feed_late)
+    thread.start()
     try:
         final = daemon.run()
     finally:
+        thread.join()
         bus.shutdown()
         feeder.shutdown()
     events = final["bus_events"]
-    assert [e for e in events if "no frames for" in e] and \
-        [e for e in events if "frames again" in e], events
+    silent = [k for k, e in enumerate(events) if "no frames for" in e]
+    again = [k for k, e in enumerate(events) if "frames again" in e]
+    assert silent and again and silent[0] < again[0], events
