@@ -102,8 +102,7 @@ def test_units_sign_and_delimiter(drive, tmp_path):
         decoded.append(codec.sample(frames.t[k] + 1e-4, u)[In.YAW_RATE])
     sent = columns["yaw_rate"][np.isfinite(columns["yaw_rate"])]
     lsb = math.radians(0.01)  # IMU_RATE resolution, slipd.dbc
-    # from the second frame: the first is the alive counter's reference, not used
-    assert np.max(np.abs(np.array(decoded[1:]) - sent[1:])) <= lsb / 2 + 1e-12
+    assert np.max(np.abs(np.array(decoded) - sent)) <= lsb / 2 + 1e-12
 
 
 def test_missing_channels_are_left_out_not_made_up(drive, tmp_path):
@@ -166,8 +165,7 @@ def test_wheel_speeds_derived_only_on_request(drive, tmp_path):
         sample = codec.sample(frames.t[k] + 1e-4, u)
         rear_mean.append(0.5 * (sample[In.WHEEL_SPEED_RL] + sample[In.WHEEL_SPEED_RR]))
     assert len(rows) >= np.isfinite(speed).sum() - 1  # only rows before the first yaw rate
-    # km/h-resolution signals; from the second frame (the first is the counter's reference)
-    assert np.max(np.abs(np.array(rear_mean[1:]) - speed[rows[1:]])) < 0.01
+    assert np.max(np.abs(np.array(rear_mean) - speed[rows])) < 0.01  # km/h-resolution signals
 
     with pytest.raises(ConfigError, match="needs the vehicle speed"):
         import_table(

@@ -362,32 +362,32 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
             return -2
     if counter_row >= 0:
         last = msg_state[msg, 0]
-        in_sync = last >= 0.0 and t - msg_state[msg, 1] <= timeouts[msg]
-        if not in_sync:
-            # The first frame, or the first after a silence longer than the timeout: its
-            # counter is the reference the next one is checked against, so it is not used
-            # itself (accepting it unchecked let a stale or frozen sender's frame through
-            # after every timeout). AUTOSAR E2E's state machine likewise wants frames in
-            # sequence before it says OK again. Costs one frame period at start and after
-            # an outage.
+        if last >= 0.0 and t - msg_state[msg, 1] > timeouts[msg]:
+            # The first frame after a silence longer than the timeout: its counter is the
+            # reference the next one is checked against, so it is not used itself (accepting
+            # it unchecked let a stale sender's frame through after every timeout). AUTOSAR
+            # E2E's state machine likewise wants frames in sequence before it says OK again.
+            # Costs one frame period after an outage. (The very first frame of a message has
+            # no history to be stale against and is used, as before.)
             msg_state[msg, 0] = counter
             msg_state[msg, 1] = t
             errors[msg, ERR_COUNTER_SYNC] += 1
             return -2
-        modulus = 1 << plan_i[counter_row, S_LENGTH]
-        delta = (counter - np.int64(last)) % modulus
-        if delta == 0:
-            # A repeat keeps the sequence (msg_state[msg, 1] is when the counter was last
-            # seen): a sender stuck repeating one frame is rejected for as long as it is.
-            msg_state[msg, 1] = t
-            errors[msg, ERR_COUNTER_REPEAT] += 1
-            return -2
-        if delta > plan_i[msg, M_MAX_DELTA]:
-            # Resynchronise on the new value so one lost sequence costs one frame.
-            msg_state[msg, 0] = counter
-            msg_state[msg, 1] = t
-            errors[msg, ERR_COUNTER_JUMP] += 1
-            return -2
+        if last >= 0.0:
+            modulus = 1 << plan_i[counter_row, S_LENGTH]
+            delta = (counter - np.int64(last)) % modulus
+            if delta == 0:
+                # A repeat keeps the sequence (msg_state[msg, 1] is when the counter was last
+                # seen): a sender stuck repeating one frame is rejected for as long as it is.
+                msg_state[msg, 1] = t
+                errors[msg, ERR_COUNTER_REPEAT] += 1
+                return -2
+            if delta > plan_i[msg, M_MAX_DELTA]:
+                # Resynchronise on the new value so one lost sequence costs one frame.
+                msg_state[msg, 0] = counter
+                msg_state[msg, 1] = t
+                errors[msg, ERR_COUNTER_JUMP] += 1
+                return -2
     first = plan_i[msg, M_SIG_FIRST]
     unavailable = np.int64(0)  # bit per slot: a value marked not available in this frame
     for row in range(first, first + plan_i[msg, M_SIG_COUNT]):
