@@ -49,14 +49,17 @@ def run(args: argparse.Namespace) -> int:
     print(f"slipd warmup: profile {profile.name}, {len(names)} estimator(s), cache {cache}",
           flush=True)
     started = time.perf_counter()
+    import can
+
     for name in names:
+        channel = f"slipd-warmup-{os.getpid()}"
         config = DaemonConfig(profile=profile, estimator=name, interface="virtual",
-                              channel=f"slipd-warmup-{os.getpid()}")
-        daemon = Daemon(config, log=lambda _line: None)
+                              channel=channel)
+        bus = can.Bus(interface="virtual", channel=channel)  # one for all the profile's buses
         try:
-            seconds = daemon.warm_up()
+            seconds = Daemon(config, bus=bus, log=lambda _line: None).warm_up()
         finally:
-            daemon.bus.shutdown()
+            bus.shutdown()
         print(f"  {name}: {seconds:.1f} s", flush=True)
     print(f"slipd warmup: done in {time.perf_counter() - started:.1f} s", flush=True)
     return 0

@@ -883,6 +883,7 @@ class Daemon:
             slack.next_persist += PERSIST_INTERVAL
 
     def _shut_down(self, previous_handlers: dict) -> None:
+        self.running = False  # also when the loop ended by --duration
         if self._deferred is not None:  # decoded and recorded like every received frame
             self._on_frame(*self._deferred)
             self._deferred = None
