@@ -256,7 +256,8 @@ def run_mode(mode: str, index: int, args, workdir: Path) -> dict:
             if first_frame is None:
                 first_frame = now - started
                 measure_at = now + args.duration
-                cpu_before = (now, process_figures(daemon.pid))
+                cpu_before = (now, process_figures(daemon.pid),
+                              {pid: process_figures(pid) for pid in _children(daemon.pid)})
                 if readers:
                     load = ctx.Process(target=stats_load, args=(stats_socket, prometheus,
                                                                 load_stop, load_report))
@@ -273,6 +274,15 @@ def run_mode(mode: str, index: int, args, workdir: Path) -> dict:
                 now - cpu_before[0])
             figures["faults_in_run"] = (figures["minor_faults"] - before["minor_faults"]
                                         + figures["major_faults"] - before["major_faults"])
+            helpers = []  # the daemon's stats server (and a recorder compressor, if any)
+            for pid, first in cpu_before[2].items():
+                try:
+                    last = process_figures(pid)
+                except OSError:
+                    continue
+                helpers.append({"cpu_percent": 100 * (last["cpu_s"] - first["cpu_s"]) / (
+                    now - cpu_before[0]), "rss_mb": last["rss_mb"]})
+            figures["helpers"] = helpers
     log = daemon.stdout.read()
     feed.join(30)
     fed = report.get(timeout=10) if not report.empty() else {}
@@ -284,6 +294,13 @@ def run_mode(mode: str, index: int, args, workdir: Path) -> dict:
         raise SystemExit(f"{mode}: the daemon stopped before the measurement:\n{log}")
     return {"mode": mode, "snapshot": snapshot, "figures": figures, "warm_start_s": first_frame,
             "frames_seen": frames, "feeder": fed, "log": log, "readers": readers_report}
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        return [int(p) for p in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
 
 
 def _free_port() -> int:
@@ -317,6 +334,9 @@ def print_result(result: dict, duration: float) -> None:
     for line in result["log"].splitlines():  # when each miss happened, and its cause
         if line.startswith("slipd: deadline miss "):
             print(f"    {line}")
+    for helper in fig.get("helpers", []):
+        print(f"  stats server process: CPU {helper['cpu_percent']:.1f} % of one core, RSS "
+              f"{helper['rss_mb']:.0f} MB")
     answers = snap.get("stats_answer_us")
     if answers and answers["count"]:
         print(f"  the loop answered the stats server {answers['count']} times: cost us p50 "
