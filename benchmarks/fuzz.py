@@ -242,10 +242,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--methods", default="all", help="estimators for the batch pass")
     args = parser.parse_args()
-    from slipd.estimators import base as estimator_base
+    from slipd.estimators.registry import parse_names
 
-    methods = (estimator_base.available() if args.methods == "all"
-               else args.methods.split(","))
+    methods = parse_names(args.methods)
     drive = drive_frames(120.0, args.seed)
     frames = mutate_frames(int(args.frames), args.seed, drive)
     workdir = Path(tempfile.mkdtemp(prefix="slipd-fuzz-"))

@@ -38,13 +38,12 @@ def run(args: argparse.Namespace) -> int:
 
     _skip_numba_blas_probe()  # the daemon's process does the same
     from slipd.daemon.loop import Daemon, DaemonConfig
-    from slipd.estimators import base
+    from slipd.estimators.registry import parse_names
     from slipd.profile import load_profile
 
     settings = _settings(args)
     profile = load_profile(settings["profile"])
-    names = (base.available() if settings["estimator"] == "all" else
-             [n.strip() for n in settings["estimator"].split(",") if n.strip()])
+    names = parse_names(settings["estimator"])
     cache = os.environ.get("NUMBA_CACHE_DIR", "numba's default cache directory")
     print(f"slipd warmup: profile {profile.name}, {len(names)} estimator(s), cache {cache}",
           flush=True)
