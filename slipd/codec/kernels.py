@@ -434,18 +434,28 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
     return msg
 
 
+#: s: how far a latched value may be stamped after the tick that samples it and still count
+#: as fresh. Never, in a replay (a tick latches the frames up to its time) nor in the daemon
+#: (its frames are on its own time base, slipd.daemon.loop); a frame from the future is one
+#: stamped across a wall-clock step, whose age is unknown: counted as fresh it stays valid
+#: for as long as the step, so it is stale. The microsecond covers the recorder's rounding.
+FUTURE_TOLERANCE_S = 1e-6
+
+
 @nb.njit(cache=True)
 def sample_latch(latch, channel_timeouts, calibration, t, u):
     """Sample-and-hold of the latch at tick time ``t`` into the input vector ``u``.
 
-    A channel is valid when it has been set and its newest value is at most its timeout old.
+    A channel is valid when it has been set and its newest value is at most its timeout old
+    (and not stamped after ``t``: FUTURE_TOLERANCE_S).
     Last, the profile's sensor-error corrections (``calibration``, float64 [CAL_LEN], see
     slipd.codec.calibration; inactive without a [calibration] table).
     """
     n_in = latch.shape[1]
     for ch in range(n_in):
         age = t - latch[LATCH_TIME, ch]
-        valid = latch[LATCH_SET, ch] > 0.5 and age <= channel_timeouts[ch]
+        valid = (latch[LATCH_SET, ch] > 0.5 and age <= channel_timeouts[ch]
+                 and age >= -FUTURE_TOLERANCE_S)
         u[ch] = latch[LATCH_VALUE, ch]
         u[n_in + ch] = 1.0 if valid else 0.0
     u[2 * n_in] = t

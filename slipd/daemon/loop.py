@@ -53,6 +53,11 @@ from slipd.profile import Profile
 REOPEN_INTERVAL = 1.0  # s between attempts to reopen a vanished interface
 PERSIST_INTERVAL = 60.0  # s
 LATE_DRAIN_MAX = 64  # frames taken from the socket queue before a tick that is already late
+#: s: a change of (wall clock - CLOCK_MONOTONIC) beyond this is a step of the wall clock (NTP
+#: or GNSS setting it, date -s). Slewing moves both clocks alike, so the difference changes
+#: only by steps; the readings around it jitter by well under a microsecond.
+CLOCK_STEP_MIN_S = 1e-3
+CLOCK_READ_MAX_S = 50e-6  # monotonic readings further apart: preempted, measure next tick
 SOCKET_RECEIVE_BUFFER = 1 << 20  # bytes: ~1 s of a full bus queued while the loop is busy
 IFF_UP = 0x1
 SO_MEMINFO = getattr(socket, "SO_MEMINFO", 55)  # linux/socket.h
@@ -359,6 +364,12 @@ class Daemon:
         self._text_sent = -1
         #: monotonic time of the last frame received on each bus (None: none yet)
         self.last_frame_at: list[float | None] = [None] * len(self.bus_names)
+        # The daemon's time base (ticks, input ages, the recording): the wall clock at start
+        # plus CLOCK_MONOTONIC's elapsed time. Frames come stamped by the kernel's wall clock;
+        # a step of it since the start (measured once a tick) is taken off their stamps.
+        self._wall_offset = time.time() - time.monotonic()
+        self._clock_shift = 0.0  # s, the wall clock's steps since the start, summed
+        self._newest_stamp = [-math.inf] * len(self.bus_names)  # per bus, on the time base
         self._silence_reported = [False] * len(self.bus_names)
         self._overflow_base = 0  # drops of the sockets before the current ones (reopens)
         self._overflow_last = 0
@@ -443,16 +454,51 @@ class Daemon:
             return
         stats = self.stats
         stats.counters["rx_frames"] += 1
-        self.last_frame_at[index] = time.monotonic()
+        now = time.monotonic()
+        self.last_frame_at[index] = now
         frame_id = message.arbitration_id
         stats.rx_per_id[frame_id] = stats.rx_per_id.get(frame_id, 0) + 1
-        timestamp = _microseconds(message.timestamp)
+        timestamp = _microseconds(self._on_time_base(message.timestamp, now, index))
         self.codec.decode(frame_id, message.data, timestamp, message.is_extended_id, bus=index)
         self._last_message = (message, index)
         if self.recorder is not None:
             self.recorder.frame(timestamp, frame_id, message.is_extended_id, message.data,
                                 rx=True, channel=self.channels[self.bus_names[index]],
                                 fd=message.is_fd, brs=message.bitrate_switch)
+
+    def _on_time_base(self, stamp: float, now: float, index: int) -> float:
+        """A kernel receive stamp (wall clock) on the daemon's time base. Around a step of the
+        wall clock a stamp can be on either side of it (stamped before the step, read after
+        the tick measured it; or the other way round): it is then bounded by what is certain,
+        received by ``now`` and not before the bus's previous frame (a socket's stamps are
+        in order), so an input's age is never negative and the recording stays in order."""
+        t = stamp - self._clock_shift
+        newest = now + self._wall_offset
+        if t > newest:
+            t = newest
+        elif t < self._newest_stamp[index]:
+            t = self._newest_stamp[index]
+        self._newest_stamp[index] = t
+        return t
+
+    def _follow_wall_clock(self) -> None:
+        """Once a tick: measure the wall clock against CLOCK_MONOTONIC; a step of it is
+        counted (clock_steps), reported, and taken off the frames' stamps from now on. Before,
+        the start-up offset was used for good: after a step forward every frame looked fresh
+        for as long as the step (a stale input VALID), after a step back none ever again."""
+        before = time.monotonic()
+        wall = time.time()
+        after = time.monotonic()
+        if after - before > CLOCK_READ_MAX_S:
+            return
+        shift = wall - 0.5 * (before + after) - self._wall_offset
+        step = shift - self._clock_shift
+        if abs(step) > CLOCK_STEP_MIN_S:
+            self._clock_shift = shift
+            self.stats.counters["clock_steps"] += 1
+            self._bus_event(f"the wall clock stepped {step:+.3f} s; ticks, input ages and the "
+                            f"recording stay on slipd's monotonic time base ({shift:+.3f} s "
+                            "from the wall clock now)")
 
     def _receive_until(self, deadline: float, t_tick: float) -> None:
         """Receive and decode frames until ``deadline`` (CLOCK_MONOTONIC; ``t_tick`` is the
@@ -500,7 +546,8 @@ class Daemon:
                 self._bus_failed(exc)
                 continue
             if message is not None:
-                if remaining <= 0.0 and _microseconds(message.timestamp) > t_tick:
+                if remaining <= 0.0 and _microseconds(
+                        message.timestamp - self._clock_shift) > t_tick:
                     # Received after the tick's time: it is the next tick's, as a replay of a
                     # bus log latches it, and draining a burst still arriving delayed ticks
                     # by up to a millisecond (measured).
@@ -654,7 +701,7 @@ class Daemon:
         tx[Tx.LATENCY_MAX_US] = interval["max"]
         tx[Tx.INPUT_TIMEOUTS] = min(stats.interval_timeouts, 63)
         tx[Tx.RX_ERRORS] = min(rejected - rx_rejected_before, 63)
-        self._send("SLIPD_DIAG", time.time())
+        self._send("SLIPD_DIAG", time.monotonic() + self._wall_offset)
         status_line = (f"STATUS=beta {math.degrees(self.out[Out.BETA]):+.2f} deg, "
                        f"status {self.last_status:#04x}, cycle p99 "
                        f"{interval['p99']} us, misses "
@@ -823,11 +870,13 @@ class Daemon:
         self.ready.set()
         monotonic = time.monotonic
         self.started_at = monotonic()
-        wall_offset = time.time() - self.started_at
+        wall_offset = self._wall_offset = time.time() - self.started_at
+        self._clock_shift = 0.0
         next_tick = self.started_at + TICK_DT
         end = self.started_at + self.config.duration if self.config.duration else math.inf
         slack = _SlackClock(self.started_at)
         while self.running and next_tick <= end:
+            self._follow_wall_clock()
             t_tick = _microseconds(next_tick + wall_offset)
             self._receive_until(next_tick, t_tick)
             woke = monotonic()

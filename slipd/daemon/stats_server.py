@@ -62,6 +62,7 @@ COUNTER_HELP = {
     "gc_full_collections": "full garbage collections in the daemon",
     "recorder_errors": "flight-recorder write failures (recording stopped)",
     "stats_server_restarts": "times this stats server was started again",
+    "clock_steps": "steps of the wall clock the daemon measured (its time base is monotonic)",
 }
 
 
