@@ -9,9 +9,21 @@ import json
 import os
 import threading
 
+import can
 import pytest
 
-from slipd.daemon.service import StateStore
+from slipd.daemon.loop import Daemon, DaemonConfig
+from slipd.daemon.service import (
+    ACCEL_OFFSET_LIMIT,
+    StateStore,
+    plausible_bound,
+    plausible_state,
+)
+from slipd.estimators import registry
+from slipd.pipeline import Pipeline
+from slipd.profile import load_profile
+
+PROFILE = load_profile("default")
 
 LAYOUT = "abc"  # a state layout hash
 
@@ -35,12 +47,10 @@ def _write(path, text: str | bytes) -> None:
 
 
 @pytest.mark.parametrize(("content", "reason"), [
-    (HEAD + '{"OFFSETS.AX": ' + "9" * 400 + "}}", "non-finite"),
     ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
     ((HEAD + '{"OFFSETS.AX": 1.0}}').encode() + b"\xff\xfe", "not UTF-8"),
     (HEAD + '{"OFFSETS.AX": [1, 2]}}', "corrupt"),
     (HEAD + '["OFFSETS.AX"]}', "corrupt"),
-    (HEAD + '{"OFFSETS.AX": NaN}}', "non-finite"),
     ('["a list"]', "expected a JSON object"),
     ("{not json", "not JSON"),
 ])
@@ -104,3 +114,71 @@ def test_temporaries_left_by_killed_writers_are_cleaned(tmp_path):
     values, message = _load(StateStore(path))
     assert values == {"OFFSETS.AX": 2.0} and "2 temporary file(s)" in message
     assert not ours.exists() and not legacy.exists() and someone_elses.exists()
+
+
+def _daemon_restoring(tmp_path, estimator: str, state_text: str) -> Daemon:
+    """A daemon (not started) whose state file holds ``state_text`` under its layout."""
+    layout = Pipeline(estimator, PROFILE).layout.hash
+    path = tmp_path / "state.json"
+    path.write_text(f'{{"method": "{estimator}", "layout": "{layout}", "state": {state_text}}}')
+    bus = can.Bus(interface="virtual", channel=f"state-{estimator}-{tmp_path.name}")
+    config = DaemonConfig(profile=PROFILE, estimator=estimator, interface="virtual",
+                          channel="unused", state_file=path)
+    daemon = Daemon(config, bus=bus)
+    daemon.bus_to_close = bus
+    return daemon
+
+
+def test_implausible_or_non_finite_restored_values_start_fresh_and_are_reported(tmp_path):
+    """A restored offset was not bounds-checked: 57 m/s^2 of accelerometer offset went into
+    the estimator; and one non-finite value (a 400-digit integer, 1e400, NaN) threw away the
+    whole file, the plausible values with it."""
+    daemon = _daemon_restoring(tmp_path, "kinematic_heuristic", (
+        '{"OFFSETS.YAW_RATE": 0.004, "OFFSETS.AX": 57.0, "OFFSETS.AY": 1e400, '
+        '"OFFSETS.ROLL_RATE": NaN, "OFFSETS.PITCH_RATE": ' + "9" * 400 + "}"))
+    fresh = daemon.pipeline.new_state()
+    slots = daemon.pipeline.persistent_slots
+    message = daemon.restore_state()
+    daemon.bus_to_close.shutdown()
+    assert daemon.state[slots["OFFSETS.YAW_RATE"]] == 0.004
+    for name in ("OFFSETS.AX", "OFFSETS.AY", "OFFSETS.ROLL_RATE", "OFFSETS.PITCH_RATE"):
+        assert daemon.state[slots[name]] == fresh[slots[name]], name
+    assert "4 of them rejected" in message
+    assert "OFFSETS.AX = 57 m/s^2 is beyond +-2 m/s^2" in message
+    assert "OFFSETS.AY = inf is not a finite number" in message
+    assert "OFFSETS.ROLL_RATE = nan" in message and "OFFSETS.PITCH_RATE = inf" in message
+    assert any("4 saved value(s) rejected" in event and str(tmp_path) in event
+               for event in daemon.tool_events)
+
+
+def test_a_restored_covariance_must_be_positive_semidefinite(tmp_path):
+    """Yoon's calibration covariance is one 3 x 3 block: an indefinite one (each entry within
+    bounds) is rejected whole; the calibration itself is still restored."""
+    fresh = Pipeline("gnss_magnetometer", PROFILE).new_state()
+    slots = Pipeline("gnss_magnetometer", PROFILE).persistent_slots
+    saved = {name: float(fresh[index]) for name, index in slots.items()}
+    saved["CAL_C[0]"] += 1.5
+    saved["CAL_P[0]"] = -saved["CAL_P[4]"]  # a negative variance
+    daemon = _daemon_restoring(tmp_path, "gnss_magnetometer", json.dumps(saved))
+    message = daemon.restore_state()
+    daemon.bus_to_close.shutdown()
+    assert daemon.state[slots["CAL_C[0]"]] == fresh[slots["CAL_C[0]"]] + 1.5
+    assert daemon.state[slots["CAL_P[0]"]] == fresh[slots["CAL_P[0]"]]
+    assert "CAL_P is not positive semidefinite" in message
+    accepted, rejected = plausible_state({**saved, "CAL_P[1]": saved["CAL_P[1]"] + 1.0,
+                                          "CAL_P[0]": fresh[slots["CAL_P[0]"]]})
+    assert rejected == ["CAL_P is not symmetric"] and "CAL_P[0]" not in accepted
+    assert "CAL_C[0]" in accepted
+
+
+@pytest.mark.parametrize("name", registry.available())
+def test_every_persistent_element_has_a_plausible_bound_its_start_value_meets(name):
+    """A method that persists a value names its bound in PLAUSIBLE_STATE; a fresh state
+    (what a first save writes) passes the check unchanged."""
+    pipeline = Pipeline(name, PROFILE)
+    fresh = pipeline.new_state()
+    values = {n: float(fresh[i]) for n, i in pipeline.persistent_slots.items()}
+    for element in values:
+        assert plausible_bound(element) is not None, element
+    assert plausible_state(values) == (values, [])
+    assert plausible_bound("KINEMATIC_HEURISTIC.OFFSETS.AX")[0] == ACCEL_OFFSET_LIMIT

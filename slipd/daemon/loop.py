@@ -34,6 +34,7 @@ from slipd.daemon.service import (
     StateStore,
     SystemdNotifier,
     apply_realtime,
+    plausible_state,
     release_compiler_pages,
 )
 from slipd.daemon.stats import (
@@ -432,9 +433,14 @@ class Daemon:
         if not slots:
             return "state persistence: the estimator keeps nothing across restarts"
         values, message = self.store.load(self.config.estimator, self.pipeline.layout.hash)
+        values, rejected = plausible_state({k: v for k, v in values.items() if k in slots})
         for name, value in values.items():
-            if name in slots:
-                self.state[slots[name]] = value
+            self.state[slots[name]] = value
+        if rejected:  # a tool's fault: listed in the snapshot too
+            reasons = "; ".join(rejected)
+            self._remember(self.tool_events, f"state file {self.store.path}: {len(rejected)} "
+                           f"saved value(s) rejected, their slots start fresh: {reasons}")
+            message = f"{message}; {len(rejected)} of them rejected (start fresh): {reasons}"
         return message
 
     def save_state(self) -> None:

@@ -12,6 +12,7 @@ import gc
 import json
 import math
 import os
+import re
 import signal
 import socket
 import stat
@@ -20,6 +21,8 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from slipd.errors import ConfigError
 
@@ -340,6 +343,86 @@ def remove_stale_temporaries(path: Path) -> int:
     return removed
 
 
+#: Physically plausible bounds of the learnt values the daemon restores, by element name (an
+#: ensemble member's prefix, ``KINEMATIC_HEURISTIC.``, aside): a value beyond its bound, or not
+#: finite, is not one a sensor could have taught (a corrupt file, one edited by hand, or one of
+#: another car), and its slot starts fresh. Every persistent element needs a bound here
+#: (tests/test_state_file.py checks the registry's methods).
+#: rad/s: gyro offsets and biases. Automotive MEMS gyros' zero-rate offsets are specified
+#: within a few deg/s over temperature; 10 deg/s is past any of them.
+GYRO_OFFSET_LIMIT = math.radians(10.0)
+#: m/s^2: accelerometer offsets. A few 0.01 m/s^2 of sensor offset plus mounting tilt and a
+#: permanent road bank (which the Ay offset absorbs, Selmanaj eq. 21): 2 m/s^2 is ~12 deg.
+ACCEL_OFFSET_LIMIT = 2.0
+#: uT: magnetometer calibration terms (Yoon's C, field components with soft and hard iron):
+#: past a MEMS magnetometer's full scale (+-1300 uT), which no learnt term can exceed.
+MAG_FIELD_LIMIT = 1300.0
+PLAUSIBLE_STATE = (
+    # (element name, bound, unit, what it is)
+    (re.compile(r"OFFSETS\.(YAW|ROLL|PITCH)_RATE|YAW_RATE_BIAS"), GYRO_OFFSET_LIMIT, "rad/s",
+     "a gyro offset"),
+    (re.compile(r"OFFSETS\.A[XY]"), ACCEL_OFFSET_LIMIT, "m/s^2", "an accelerometer offset"),
+    (re.compile(r"CAL_C\[[0-8]\]"), MAG_FIELD_LIMIT, "uT", "a magnetometer calibration term"),
+    (re.compile(r"CAL_P\[[0-8]\]"), MAG_FIELD_LIMIT ** 2, "uT^2",
+     "a calibration covariance term"),
+)
+#: 3 x 3 covariance blocks (row-major): restored whole, symmetric and positive semidefinite,
+#: or not at all (a half-restored or indefinite covariance breaks the least squares).
+COVARIANCE_BLOCK = re.compile(r"(?P<block>(.*\.)?CAL_P)\[(?P<index>[0-8])\]$")
+
+
+def plausible_bound(name: str) -> tuple[float, str, str] | None:
+    """(bound, unit, what) of persistent element ``name``; None when none is known."""
+    suffixes = [name.split(".", k)[-1] for k in range(name.count(".") + 1)]  # a.b.c, b.c, c
+    for pattern, bound, unit, what in PLAUSIBLE_STATE:
+        if any(pattern.fullmatch(suffix) for suffix in suffixes):
+            return bound, unit, what
+    return None
+
+
+def plausible_state(values: dict[str, float]) -> tuple[dict[str, float], list[str]]:
+    """The restored values that are finite and within their PLAUSIBLE_STATE bound (a plug-in
+    method's element without one: finite), and a reason for each one rejected (its slot then
+    starts fresh)."""
+    accepted: dict[str, float] = {}
+    rejected: list[str] = []
+    for name, value in values.items():
+        known = plausible_bound(name)
+        if not math.isfinite(value):
+            rejected.append(f"{name} = {value!r} is not a finite number")
+        elif known is not None and abs(value) > known[0]:
+            bound, unit, what = known
+            rejected.append(f"{name} = {value:.6g} {unit} is beyond +-{bound:.6g} {unit}, "
+                            f"implausible for {what}")
+        else:
+            accepted[name] = value
+    blocks: dict[str, dict[int, str]] = {}
+    for name in list(accepted):
+        match = COVARIANCE_BLOCK.match(name)
+        if match:
+            blocks.setdefault(match["block"], {})[int(match["index"])] = name
+    for block, names in blocks.items():
+        reason = _covariance_problem([accepted.get(names.get(i, ""), math.nan)
+                                      for i in range(9)])
+        if reason:
+            for name in names.values():
+                del accepted[name]
+            rejected.append(f"{block} is {reason}")
+    return accepted, rejected
+
+
+def _covariance_problem(entries: list[float]) -> str | None:
+    if not all(math.isfinite(v) for v in entries):
+        return "not complete"
+    matrix = np.array(entries).reshape(3, 3)
+    scale = max(float(np.abs(matrix).max()), 1e-300)
+    if np.abs(matrix - matrix.T).max() > 1e-6 * scale:
+        return "not symmetric"
+    if np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min() < -1e-9 * scale:
+        return "not positive semidefinite"
+    return None
+
+
 class StateStore:
     """Persisted estimator state (learnt offsets, calibrations) as JSON, written atomically.
 
@@ -369,9 +452,9 @@ class StateStore:
                 return {}, (f"saved state in {self.path} has state layout "
                             f"{document.get('layout')!r}, this slipd's {method} has {layout!r} "
                             f"(saved by another version): ignored{note}")
+            # floats, finite or not: plausible_state judges each one (one bad value costs
+            # its own slot, not the others)
             values = {str(k): float(v) for k, v in document["state"].items()}
-            if any(not math.isfinite(v) for v in values.values()):
-                raise ValueError("non-finite value")
             return values, f"restored {len(values)} state values from {self.path}{note}"
         except (ValueError, KeyError, TypeError, AttributeError, OverflowError) as exc:
             return {}, f"state file {self.path} is corrupt ({exc}): ignored{note}"
