@@ -21,7 +21,9 @@ from slipd.replay.engine import checked_log
 from slipd.replay.readers import read_frames
 
 PROFILE = load_profile("default")
-STEP_AT, STOP_AT = 60, 130  # feeder cycles (10 ms): the clock steps, the sensors stop
+#: feeder cycles (10 ms): the clock steps (kinematic_heuristic is VALID ~2 s after its
+#: start), the sensors stop
+STEP_AT, STOP_AT = 250, 350
 CYCLE_FRAMES = 4  # frames the feeder sends a cycle
 
 
@@ -68,8 +70,8 @@ def test_a_wall_clock_step_moves_neither_validity_nor_the_recording(tmp_path, mo
     channel = f"clock-step-{step_s:+.0f}"
     daemon_bus = can.Bus(interface="virtual", channel=channel)
     feeder_bus = can.Bus(interface="virtual", channel=channel)
-    config = DaemonConfig(profile=PROFILE, estimator="zero", interface="virtual",
-                          channel=channel, duration=2.6, recorder=tmp_path / "recorder.log")
+    config = DaemonConfig(profile=PROFILE, estimator="kinematic_heuristic", interface="virtual",
+                          channel=channel, duration=4.8, recorder=tmp_path / "recorder.log")
     log: list[str] = []
     daemon = Daemon(config, bus=daemon_bus, log=log.append)
 

@@ -381,3 +381,56 @@ def test_the_served_snapshot_is_the_daemons_own(tmp_path):
     assert got["bus_events"] == local["bus_events"] and got["rx_per_id"] == local["rx_per_id"]
     assert got["estimator"] == "zero" and got["recorder"] is None
     assert got["counters"]["ticks"] <= local["counters"]["ticks"]
+
+
+def test_consistency_verdicts_are_counted_and_served_per_estimator(tmp_path):
+    """The consistency monitor's FAIL and WARN ticks (Pipeline.consistency_flags) are
+    counters of the snapshot and of Prometheus, labelled with the running estimator."""
+    import can
+
+    from slipd.daemon.loop import Daemon, DaemonConfig
+    from slipd.estimators.consistency import Flag
+    from slipd.profile import load_profile
+
+    bus = can.Bus(interface="virtual", channel="verdicts")
+    path = str(tmp_path / "d.sock")
+    daemon = Daemon(DaemonConfig(profile=load_profile("default"),
+                                 estimator="kinematic_heuristic", interface="virtual",
+                                 channel="verdicts", duration=60, stats_socket=path,
+                                 prometheus="127.0.0.1:0"), bus=bus, log=lambda _line: None)
+    ticks = [0]
+
+    def verdict(_state) -> int:  # 20 ticks FAIL (with WARN), 15 WARN, then consistent
+        ticks[0] += 1
+        k = ticks[0]
+        if 10 <= k < 30:
+            return Flag.CHECKED | Flag.FAIL | Flag.WARN | Flag.DYNAMIC
+        return Flag.CHECKED | (Flag.WARN if 30 <= k < 45 else 0)
+
+    daemon.pipeline.consistency_flags = verdict
+    served: dict = {}
+
+    def ask() -> None:
+        daemon.ready.wait(60)
+        while ticks[0] < 60:
+            time.sleep(0.05)
+        served["snapshot"] = query(path)
+        host, port = daemon.server.http_address
+        with urllib.request.urlopen(f"http://{host}:{port}/metrics", timeout=5) as reply:
+            served["metrics"] = reply.read().decode()
+        daemon.request_stop()
+
+    client = threading.Thread(target=ask)
+    client.start()
+    try:
+        daemon.run()
+    finally:
+        client.join()
+        bus.shutdown()
+    counters = served["snapshot"]["counters"]
+    assert counters["consistency_fail_ticks"] == 20
+    assert counters["consistency_warn_ticks"] == 35
+    families = {f.name: f for f in text_string_to_metric_families(served["metrics"])}
+    for name, value in (("slipd_consistency_fail_ticks", 20), ("slipd_consistency_warn_ticks", 35)):
+        (sample,) = families[name].samples
+        assert sample.labels == {"estimator": "kinematic_heuristic"} and sample.value == value

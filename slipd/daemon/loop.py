@@ -48,9 +48,11 @@ from slipd.daemon.stats import (
 )
 from slipd.daemon.transmit import QUEUE_FULL, frame_buffer, frame_writer, payload
 from slipd.errors import ConfigError
+from slipd.estimators.consistency import Flag
 from slipd.pipeline import TICK_DT, Pipeline, catch_up_steps
 from slipd.profile import Profile
 
+CONSISTENCY_FAIL, CONSISTENCY_WARN = int(Flag.FAIL), int(Flag.WARN)  # counted per tick
 REOPEN_INTERVAL = 1.0  # s between attempts to reopen a vanished interface
 PERSIST_INTERVAL = 60.0  # s
 LATE_DRAIN_MAX = 64  # frames taken from the socket queue before a tick that is already late
@@ -668,6 +670,11 @@ class Daemon:
         out = self.out
         self._estimate(t_wall, self.state, self.u, out, self.tx, self.steps)
         self.steps = 1
+        verdict = self.pipeline.consistency_flags(self.state)
+        if verdict & CONSISTENCY_FAIL:
+            self.stats.counters["consistency_fail_ticks"] += 1
+        if verdict & CONSISTENCY_WARN:
+            self.stats.counters["consistency_warn_ticks"] += 1
         for name in TICK_MESSAGES:
             self._send(name, t_wall)
         status = int(out[Out.STATUS])

@@ -38,6 +38,7 @@ import numpy as np
 from slipd.daemon.service import step_aside
 from slipd.daemon.stats import (
     HISTOGRAMS,
+    PER_ESTIMATOR,
     PERCENTILES,
     SOCKET_BACKLOG,
     SharedStats,
@@ -63,6 +64,8 @@ COUNTER_HELP = {
     "recorder_errors": "flight-recorder write failures (recording stopped)",
     "stats_server_restarts": "times this stats server was started again",
     "clock_steps": "steps of the wall clock the daemon measured (its time base is monotonic)",
+    "consistency_fail_ticks": "ticks the consistency monitor failed the estimate (VALID cleared)",
+    "consistency_warn_ticks": "ticks the consistency monitor warned (DEGRADED)",
 }
 
 
@@ -204,7 +207,14 @@ class SlipdCollector:
 
         snapshot = self.source.get()
         for name, value in snapshot["counters"].items():
-            yield CounterMetricFamily(f"slipd_{name}", COUNTER_HELP.get(name, name), value=value)
+            if name in PER_ESTIMATOR:
+                family = CounterMetricFamily(f"slipd_{name}", COUNTER_HELP.get(name, name),
+                                             labels=["estimator"])
+                family.add_metric([str(snapshot.get("estimator", ""))], value)
+                yield family
+            else:
+                yield CounterMetricFamily(f"slipd_{name}", COUNTER_HELP.get(name, name),
+                                          value=value)
         by_id = CounterMetricFamily("slipd_rx_frames_by_id", "input frames received per CAN ID",
                                     labels=["id"])
         for frame_id, count in snapshot.get("rx_per_id", {}).items():
