@@ -34,6 +34,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -128,11 +129,19 @@ def feeder(interface: str, channel: str, rate: float, duration: float, cpu: int 
         bus.shutdown()
 
 
+def burst(target, clients: int) -> None:
+    """``clients`` threads running ``target`` at once, waited for."""
+    threads = [threading.Thread(target=target) for _ in range(clients)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+
+
 def stats_load(stats_socket: str, prometheus: str, stop, report) -> None:
     """The readers of a ``+stats`` mode (a process of their own, so their work is not the
     listener's): ``slipd stats --watch 0.1``, a Prometheus scrape a second and a burst of
     BURST_CLIENTS concurrent queries every BURST_EVERY_S. Reports what failed."""
-    import threading
     import urllib.request
 
     from slipd.daemon.stats import query
@@ -167,11 +176,7 @@ def stats_load(stats_socket: str, prometheus: str, stop, report) -> None:
             result["first_error"] = result["first_error"] or f"scrape: {exc}"
         if time.monotonic() >= next_burst:
             next_burst += BURST_EVERY_S
-            threads = [threading.Thread(target=one_query) for _ in range(BURST_CLIENTS)]
-            for thread in threads:
-                thread.start()
-            for thread in threads:
-                thread.join()
+            burst(one_query, BURST_CLIENTS)
             result["bursts"] += 1
     watch.terminate()
     _, watch_errors = watch.communicate(timeout=10)

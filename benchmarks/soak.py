@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.daemon_latency import _free_port, feeder, process_figures
+from benchmarks.daemon_latency import _free_port, burst, feeder, process_figures
 
 BURST_EVERY_S = 60.0
 BURST_CLIENTS = 100
@@ -70,11 +70,7 @@ def readers(stats_socket: str, prometheus: str, stop: threading.Event, result: d
             result["first_error"] = result["first_error"] or f"scrape: {exc}"
         if time.monotonic() >= next_burst:
             next_burst += BURST_EVERY_S
-            threads = [threading.Thread(target=one) for _ in range(BURST_CLIENTS)]
-            for thread in threads:
-                thread.start()
-            for thread in threads:
-                thread.join()
+            burst(one, BURST_CLIENTS)
 
 
 def soak(duration: float, sample_s: float, settle_s: float, estimator: str, rate: float,

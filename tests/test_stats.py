@@ -334,6 +334,19 @@ def test_slipd_stats_without_a_daemon_says_so(tmp_path):
     assert result.returncode == 2 and "no daemon answers" in result.stderr
 
 
+def _run_with_client(daemon, client, *buses) -> None:
+    """daemon.run() with ``client`` in a thread of its own (it ends the run); then the
+    buses are shut down."""
+    thread = threading.Thread(target=client)
+    thread.start()
+    try:
+        daemon.run()
+    finally:
+        thread.join()
+        for bus in buses:
+            bus.shutdown()
+
+
 def test_the_served_snapshot_is_the_daemons_own(tmp_path):
     """The document the stats server builds from the shared block equals the one the
     daemon computes itself (Daemon.snapshot), key for key."""
@@ -365,14 +378,7 @@ def test_the_served_snapshot_is_the_daemons_own(tmp_path):
         daemon.request_stop()
 
     daemon.on_second = second
-    client = threading.Thread(target=ask)
-    client.start()
-    try:
-        daemon.run()
-    finally:
-        client.join()
-        bus.shutdown()
-        feeder.shutdown()
+    _run_with_client(daemon, ask, bus, feeder)
     assert served, "no snapshot served"
     local = daemon.snapshot()  # after the run: counters went on a little
     got = served[0]
@@ -408,7 +414,7 @@ def test_consistency_verdicts_are_counted_and_served_per_estimator(tmp_path):
         return Flag.CHECKED | (Flag.WARN if 30 <= k < 45 else 0)
 
     daemon.pipeline.consistency_flags = verdict
-    served: dict = {}
+    served: dict = {}  # filled by the client, as `slipd stats` and a scrape
 
     def ask() -> None:
         daemon.ready.wait(60)
@@ -420,13 +426,7 @@ def test_consistency_verdicts_are_counted_and_served_per_estimator(tmp_path):
             served["metrics"] = reply.read().decode()
         daemon.request_stop()
 
-    client = threading.Thread(target=ask)
-    client.start()
-    try:
-        daemon.run()
-    finally:
-        client.join()
-        bus.shutdown()
+    _run_with_client(daemon, ask, bus)
     counters = served["snapshot"]["counters"]
     assert counters["consistency_fail_ticks"] == 20
     assert counters["consistency_warn_ticks"] == 35
