@@ -510,7 +510,7 @@ class Daemon:
 
     def _receive_until(self, deadline: float, t_tick: float) -> None:
         """Receive and decode frames until ``deadline`` (CLOCK_MONOTONIC; ``t_tick`` is the
-        same instant in wall-clock microseconds, as frames are stamped). A tick that is already
+        same instant on the daemon's time base, _on_time_base). A tick that is already
         late still takes what the socket has queued (at most LATE_DRAIN_MAX frames), so after
         an overrun the tick latches the newest inputs instead of starving them; a frame whose
         receive timestamp is after the tick's time waits for the next tick (``_deferred``).
