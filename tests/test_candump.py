@@ -335,7 +335,7 @@ def test_other_formats_go_through_python_can(tmp_path):
     ("(1.000000) can0 123##0" + "00" * 65, 8),
     ("(1.000000) can0 40000123#00", 15),
     ("(1.000000) can0 800#00", 14),
-    ("(1.000000) can0 123##4" + "00" * 8, 11),  # flags nibble: BRS and ESI only
+    ("(1.000000) can0 123##8" + "00" * 8, 11),  # flags nibble: BRS, ESI and FDF only
 ])
 def test_frames_no_bus_can_carry_are_malformed(tmp_path, line, code):
     """These were accepted silently (10-byte classic frames, FD lengths 9 or 13, RTR DLC 64,
@@ -344,6 +344,22 @@ def test_frames_no_bus_can_carry_are_malformed(tmp_path, line, code):
     with pytest.raises(LogFormatError, match=rf":2: {re.escape(ERROR_REASONS[code])}"):
         read_candump(path)
     assert read_candump(path, skip_bad=True).bad_line_numbers == [2]
+
+
+def test_the_fdf_flag_linux_writes_on_fd_frames_is_read(tmp_path):
+    """Linux 6.x sets CANFD_FDF (0x04) in every FD frame's flags, so candump on an FD vcan
+    writes ``##5`` for a BRS frame: refused as a bad flags nibble, it failed the VM's
+    candump logs of the Hyundai CAN FD profile."""
+    lines = ["(1796166122.150084) vcan0 300##58945000000000000",
+             "(1796166122.160084) vcan0 301##40011223344556677"]
+    path = write_lines(tmp_path / "fdf.log", lines)
+    frames = read_candump(path)
+    expected = list(can.CanutilsLogReader(str(path)))
+    assert len(frames) == len(expected) == 2
+    for k, message in enumerate(expected):
+        assert frames.flags[k] & FLAG_FD and message.is_fd
+        assert bool(frames.flags[k] & FLAG_BRS) == message.bitrate_switch
+        assert bytes(frames.data[k, :frames.dlc[k]]) == bytes(message.data)
 
 
 def test_the_error_flag_makes_an_error_frame_whatever_its_class(tmp_path):

@@ -2,8 +2,9 @@
 
 Line format: ``(SECONDS.FRACTION) CHANNEL ID#DATA [R|T]`` where ID has 3 hex digits
 (standard) or 8 (extended), DATA is hex pairs, ``##F`` starts a CAN FD payload with flags
-nibble F (bit 0 BRS, bit 1 ESI), ``#R[DLC]`` is a remote frame, and the optional trailing
-``R``/``T`` is python-can's receive/transmit marker. Frames equal python-can's
+nibble F (bit 0 BRS, bit 1 ESI, bit 2 FDF: Linux sets CANFD_FDF on every FD frame since
+6.x, so its candump writes ``##5`` for a BRS frame), ``#R[DLC]`` is a remote frame, and the
+optional trailing ``R``/``T`` is python-can's receive/transmit marker. Frames equal python-can's
 ``CanutilsLogReader`` on the same file (tests compare them), with two departures: an ID
 with the error flag (0x20000000) is an error frame whatever its error classes (python-can
 also asks for the bus-error class 0x80 and otherwise reads the class bits as an ID), and
@@ -52,7 +53,7 @@ ERROR_REASONS = {
     8: "data longer than 64 bytes",
     9: "unexpected text after the frame (expected R, T or end of line)",
     10: "more than 64 distinct channel names",
-    11: "bad CAN FD flags nibble (expected 0-3)",
+    11: "bad CAN FD flags nibble (expected 0-7: BRS, ESI, FDF)",
     12: "bad remote frame (a DLC of 0-8, and CAN FD has none)",
     13: f"timestamp has more than {MAX_SECONDS_DIGITS} digits of seconds",
     14: "a 3-digit (standard) CAN ID above 7FF",
@@ -209,7 +210,7 @@ def _scan_payload(buf, p, stop, width, row, data_out):
         flags |= FLAG_FD
         p += 1
         fd = _hex(buf[p]) if p < stop else -1
-        if fd < 0 or fd > 3:
+        if fd < 0 or fd > 7:  # bit 3 is no flag of struct canfd_frame
             return 11, p, 0, 0
         if fd & 1:
             flags |= FLAG_BRS
