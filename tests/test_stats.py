@@ -434,3 +434,25 @@ def test_consistency_verdicts_are_counted_and_served_per_estimator(tmp_path):
     for name, value in (("slipd_consistency_fail_ticks", 20), ("slipd_consistency_warn_ticks", 35)):
         (sample,) = families[name].samples
         assert sample.labels == {"estimator": "kinematic_heuristic"} and sample.value == value
+
+
+def test_clients_before_the_loops_first_answer_get_a_reason_and_no_traceback(tmp_path, capfd):
+    """While the daemon warms up (numba compiles, 39 s in the 1-hour soak) its stats server
+    already listens: every Prometheus scrape ended in a traceback of prometheus_client's
+    server (the collector raised), and `slipd stats` said only that the loop did not answer."""
+    stats = Stats.in_shared_memory()
+    path = str(tmp_path / "stats.sock")
+    server = StatsServer(path, ("127.0.0.1", 0), stats)
+    server.wait_ready()
+    try:  # no poll(): the loop has not started
+        host, port = server.http_address
+        with urllib.request.urlopen(f"http://{host}:{port}/metrics", timeout=10) as reply:
+            assert reply.status == 200
+            families = {f.name: f for f in text_string_to_metric_families(reply.read().decode())}
+        assert families["slipd_loop_answering"].samples[0].value == 0
+        assert "slipd_ticks" not in families
+        with pytest.raises(OSError, match="no snapshot yet.*still starting"):
+            query(path, timeout=10.0)
+    finally:
+        server.close()
+    assert "Traceback" not in capfd.readouterr().err

@@ -103,7 +103,9 @@ class SnapshotSource:
                 return self.latest
             if self.latest is not None:
                 return dict(self.latest, stale_s=round(time.monotonic() - self.latest_at, 3))
-            raise TimeoutError(f"the daemon's loop did not answer within {LOOP_PATIENCE_S} s")
+            raise TimeoutError(f"no snapshot yet: the daemon's loop did not answer within "
+                               f"{LOOP_PATIENCE_S} s (still starting: numba warm-up; or "
+                               "stalled)")
 
     def _collect(self) -> None:
         sequence = self.shared.sequence_words
@@ -205,7 +207,16 @@ class SlipdCollector:
     def collect(self) -> Iterator:
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
-        snapshot = self.source.get()
+        answering = "slipd_loop_answering"
+        about = "1 while the daemon's loop answers the stats server (0: starting or stalled)"
+        try:
+            snapshot = self.source.get()
+        except TimeoutError:
+            # Before the loop's first answer (its numba warm-up at start): no figures yet;
+            # raised, prometheus_client's server printed a traceback for every scrape.
+            yield GaugeMetricFamily(answering, about, value=0)
+            return
+        yield GaugeMetricFamily(answering, about, value=0 if "stale_s" in snapshot else 1)
         for name, value in snapshot["counters"].items():
             if name in PER_ESTIMATOR:
                 family = CounterMetricFamily(f"slipd_{name}", COUNTER_HELP.get(name, name),
