@@ -13,9 +13,10 @@ import pytest
 
 from slipd.channels import ST_VALID, In
 from slipd.codec import Codec, DecodeState, kernels
+from slipd.codec.calibration import calibration_vector
 from slipd.codec.kernels import LATCH_SET, LATCH_TIME, LATCH_VALUE
 from slipd.daemon.loop import Daemon, DaemonConfig
-from slipd.profile import load_profile
+from slipd.profile import Calibration, load_profile
 from slipd.replay.candump import FLAG_TX
 from slipd.replay.engine import checked_log
 from slipd.replay.readers import read_frames
@@ -125,5 +126,5 @@ def test_a_value_stamped_after_the_tick_is_stale():
                          (10.001, False), (3610.0, False)):
         state.latch[LATCH_TIME, In.YAW_RATE] = stamp
         for sample in (kernels.sample_latch, kernels.sample_latch.py_func):
-            sample(state.latch, timeouts, 10.0, u)
+            sample(state.latch, timeouts, calibration_vector(Calibration()), 10.0, u)
             assert u[n_in + In.YAW_RATE] == (1.0 if fresh else 0.0), (stamp, sample)
