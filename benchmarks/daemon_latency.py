@@ -6,6 +6,10 @@ at ~70 % load with 8-byte frames); this process listens to the daemon's output f
 mode is run in turn: ``plain`` (no real-time settings), ``realtime`` (SCHED_FIFO 50,
 mlockall, timer slack 1 ns, gc freeze, daemon pinned to the last CPU, feeder to the first)
 and ``spin`` (realtime plus a ``--spin-us`` window before each tick, 500 us by default).
+A mode name with ``+stats`` (``plain+stats``, ``spin+stats``) runs that mode with stats readers
+on the daemon, from a process of their own: ``slipd stats --watch 0.1``, a Prometheus scrape
+every second and, every 5 s, a burst of 100 concurrent ``slipd stats`` queries; the failed
+queries are counted. Compare it with the same mode without them in the same run.
 RSS is the daemon's resident set while it runs (after start-up); the peak, reached while
 numba loads its kernels, is printed beside it.
 
@@ -30,6 +34,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -38,6 +43,9 @@ import numpy as np
 TARGETS = {"deadline misses": 0, "cycle p99 us": 300, "RSS MB": 150, "warm start s": 2.0}
 REALTIME = ["--sched-fifo", "50", "--mlockall", "--timer-slack-ns", "1", "--gc-freeze"]
 MODES = {"plain": [], "realtime": REALTIME, "spin": REALTIME}
+STATS_SUFFIX = "+stats"
+BURST_CLIENTS = 100
+BURST_EVERY_S = 5.0
 
 
 def bus_schedule(rate: float, seed: int = 0):
@@ -121,6 +129,62 @@ def feeder(interface: str, channel: str, rate: float, duration: float, cpu: int 
         bus.shutdown()
 
 
+def burst(target, clients: int) -> None:
+    """``clients`` threads running ``target`` at once, waited for."""
+    threads = [threading.Thread(target=target) for _ in range(clients)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+
+
+def stats_load(stats_socket: str, prometheus: str, stop, report) -> None:
+    """The readers of a ``+stats`` mode (a process of their own, so their work is not the
+    listener's): ``slipd stats --watch 0.1``, a Prometheus scrape a second and a burst of
+    BURST_CLIENTS concurrent queries every BURST_EVERY_S. Reports what failed."""
+    import urllib.request
+
+    from slipd.daemon.stats import query
+
+    watch = subprocess.Popen([str(Path(sys.executable).with_name("slipd")), "stats",
+                              "--socket", stats_socket, "--watch", "0.1"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    result = {"bursts": 0, "queries": 0, "failed": 0, "scrapes": 0, "scrape_failures": 0,
+              "first_error": ""}
+    lock = threading.Lock()
+
+    def one_query() -> None:
+        try:
+            query(stats_socket, timeout=5.0)
+            ok, error = True, ""
+        except (OSError, ValueError) as exc:
+            ok, error = False, f"{type(exc).__name__}: {exc}"
+        with lock:
+            result["queries"] += 1
+            if not ok:
+                result["failed"] += 1
+                result["first_error"] = result["first_error"] or error
+
+    next_burst = time.monotonic() + 1.0
+    while not stop.wait(1.0):
+        try:
+            with urllib.request.urlopen(f"http://{prometheus}/metrics", timeout=5) as reply:
+                reply.read()
+            result["scrapes"] += 1
+        except OSError as exc:
+            result["scrape_failures"] += 1
+            result["first_error"] = result["first_error"] or f"scrape: {exc}"
+        if time.monotonic() >= next_burst:
+            next_burst += BURST_EVERY_S
+            burst(one_query, BURST_CLIENTS)
+            result["bursts"] += 1
+    watch.terminate()
+    _, watch_errors = watch.communicate(timeout=10)
+    result["watch_exit"] = watch.returncode
+    result["watch_errors"] = watch_errors.strip().splitlines()[-1:] if watch_errors else []
+    report.put(result)
+
+
 def process_figures(pid: int) -> dict:
     status = Path(f"/proc/{pid}/status").read_text()
     fields = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
@@ -134,7 +198,7 @@ def process_figures(pid: int) -> dict:
             "cpu_s": (int(stat[11]) + int(stat[12])) / ticks}
 
 
-def run_mode(mode: str, args, workdir: Path) -> dict:
+def run_mode(mode: str, index: int, args, workdir: Path) -> dict:
     import can
 
     from slipd.codec import Codec
@@ -143,9 +207,11 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
 
     outputs = Codec(load_profile("default")).outputs
     state_id = outputs.frame_id("SLIPD_STATE")
-    channel = args.channel or str(workdir / f"bus-{mode}")
+    base_mode, readers = mode.removesuffix(STATS_SUFFIX), mode.endswith(STATS_SUFFIX)
+    tag = f"{index}-{base_mode}"
+    channel = args.channel or str(workdir / f"bus-{tag}")
     n_cpu = os.cpu_count() or 1
-    realtime = mode != "plain"
+    realtime = base_mode != "plain"
     own_cpus = os.sched_getaffinity(0)
     listener = can.Bus(interface=args.interface, channel=channel,
                        can_filters=[{"can_id": state_id, "can_mask": 0x7FF, "extended": False}])
@@ -158,11 +224,13 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     feed.start()
     if not ready.wait(120):
         raise SystemExit("feeder did not start")
-    stats_socket = str(workdir / f"stats-{mode}.sock")
+    stats_socket = str(workdir / f"stats-{tag}.sock")
+    prometheus = f"127.0.0.1:{_free_port()}"
     command = [str(Path(sys.executable).with_name("slipd")), "run", "--interface", args.interface,
                "--channel", channel, "--estimator", args.estimator, "--stats-socket",
-               stats_socket, "--duration", str(args.duration + 3.0), *MODES[mode]]
-    if mode == "spin":
+               stats_socket, "--prometheus", prometheus, "--duration", str(args.duration + 3.0),
+               *MODES[base_mode]]
+    if base_mode == "spin":
         command += ["--spin-us", str(args.spin_us)]
     if realtime and n_cpu > 1:
         command += ["--cpu", str(n_cpu - 1)]
@@ -179,6 +247,8 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     first_frame = None
     frames = 0
     measure_at = None
+    load, load_stop, load_report = None, ctx.Event(), ctx.Queue()
+    readers_report: dict = {}
     snapshot, figures, cpu_before = None, None, None
     poll_s = args.listener_poll_ms * 1e-3
     while daemon.poll() is None:
@@ -191,8 +261,17 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
             if first_frame is None:
                 first_frame = now - started
                 measure_at = now + args.duration
-                cpu_before = (now, process_figures(daemon.pid))
+                cpu_before = (now, process_figures(daemon.pid),
+                              {pid: process_figures(pid) for pid in _children(daemon.pid)})
+                if readers:
+                    load = ctx.Process(target=stats_load, args=(stats_socket, prometheus,
+                                                                load_stop, load_report))
+                    load.start()
         if measure_at is not None and now >= measure_at and snapshot is None:
+            if load is not None:  # the readers stop first: this query must not be refused
+                load_stop.set()
+                readers_report = load_report.get(timeout=60)
+                load.join(30)
             snapshot = query(stats_socket)
             figures = process_figures(daemon.pid)
             before = cpu_before[1]
@@ -200,6 +279,15 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
                 now - cpu_before[0])
             figures["faults_in_run"] = (figures["minor_faults"] - before["minor_faults"]
                                         + figures["major_faults"] - before["major_faults"])
+            helpers = []  # the daemon's stats server (and a recorder compressor, if any)
+            for pid, first in cpu_before[2].items():
+                try:
+                    last = process_figures(pid)
+                except OSError:
+                    continue
+                helpers.append({"cpu_percent": 100 * (last["cpu_s"] - first["cpu_s"]) / (
+                    now - cpu_before[0]), "rss_mb": last["rss_mb"]})
+            figures["helpers"] = helpers
     log = daemon.stdout.read()
     feed.join(30)
     fed = report.get(timeout=10) if not report.empty() else {}
@@ -210,7 +298,22 @@ def run_mode(mode: str, args, workdir: Path) -> dict:
     if snapshot is None:
         raise SystemExit(f"{mode}: the daemon stopped before the measurement:\n{log}")
     return {"mode": mode, "snapshot": snapshot, "figures": figures, "warm_start_s": first_frame,
-            "frames_seen": frames, "feeder": fed, "log": log}
+            "frames_seen": frames, "feeder": fed, "log": log, "readers": readers_report}
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        return [int(p) for p in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
 
 
 def print_result(result: dict, duration: float) -> None:
@@ -236,6 +339,20 @@ def print_result(result: dict, duration: float) -> None:
     for line in result["log"].splitlines():  # when each miss happened, and its cause
         if line.startswith("slipd: deadline miss "):
             print(f"    {line}")
+    for helper in fig.get("helpers", []):
+        print(f"  stats server process: CPU {helper['cpu_percent']:.1f} % of one core, RSS "
+              f"{helper['rss_mb']:.0f} MB")
+    answers = snap.get("stats_answer_us")
+    if answers and answers["count"]:
+        print(f"  the loop answered the stats server {answers['count']} times: cost us p50 "
+              f"{answers['p50']} p99 {answers['p99']} max {answers['max']}")
+    readers = result.get("readers")
+    if readers:
+        print(f"  stats readers: {readers['queries']} burst queries in {readers['bursts']} "
+              f"bursts of {BURST_CLIENTS}, {readers['failed']} failed; {readers['scrapes']} "
+              f"Prometheus scrapes, {readers['scrape_failures']} failed; `slipd stats --watch "
+              f"0.1` exit {readers['watch_exit']} {readers['watch_errors']}"
+              + (f"; first error: {readers['first_error']}" if readers["first_error"] else ""))
     print(f"  CPU {fig['cpu_percent']:.1f} % of one core, RSS {fig['rss_mb']:.0f} MB (peak "
           f"{fig['rss_peak_mb']:.0f} MB; anonymous {fig['rss_anon_mb']:.0f} MB, file-backed "
           f"{fig['rss_file_mb']:.0f} MB), page faults while measured {fig['faults_in_run']}, "
@@ -252,7 +369,9 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=60.0, help="measured seconds per mode")
     parser.add_argument("--rate", type=float, default=4000.0, help="bus frames/s")
     parser.add_argument("--estimator", default="kinematic_heuristic")
-    parser.add_argument("--modes", default="plain,realtime,spin")
+    parser.add_argument("--modes", default="plain,realtime,spin",
+                        help="comma-separated: plain, realtime, spin, each optionally with "
+                             "+stats (stats readers on the daemon); a mode may repeat")
     parser.add_argument("--interface", default="slipd_unix")
     parser.add_argument("--channel", help="bus channel (slipd_unix: a fresh directory)")
     parser.add_argument("--spin-us", type=int, default=500,
@@ -280,8 +399,8 @@ def main() -> None:
               f"; feeder clock {args.clock_ppm:+g} ppm), {args.duration:g} s per mode, "
               f"{args.rate:g} frames/s offered, {os.cpu_count()} CPUs")
         results = []
-        for mode in args.modes.split(","):
-            result = run_mode(mode, args, workdir)
+        for index, mode in enumerate(args.modes.split(",")):
+            result = run_mode(mode, index, args, workdir)
             print_result(result, args.duration)
             results.append(result)
         base = results[0]["snapshot"]["cycle_latency_us"]

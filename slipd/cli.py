@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from slipd.errors import SlipdError
@@ -20,6 +21,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("slipd.commands.sim", "simulate scenarios: candump log + ground truth"),
     "eval": ("slipd.commands.eval", "evaluate estimators on logs against ground truth"),
     "stats": ("slipd.commands.stats", "show a running daemon's latency statistics"),
+    "warmup": ("slipd.commands.warmup", "compile the daemon's kernels into the numba cache "
+               "(once at install time, so the service starts fast)"),
     "import": ("slipd.commands.import_log", "turn recorded signals (CSV, .mat) into a candump "
                "log through the codec"),
     "profile": ("slipd.commands.profile", "propose a profile from a DBC (scaffold) or check "
@@ -82,6 +85,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # the reader left (`slipd stats --json | head -1`): not an error of slipd's; stdout
+        # goes to /dev/null so the interpreter's final flush does not fail again
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

@@ -237,7 +237,7 @@ def test_run_options_follow_python_can_conventions(tmp_path, monkeypatch):
                               "pt=can2"])
     assert _settings(args)["buses"] == {"pt": "can2"}
     (tmp_path / "bad.toml").write_text("bitrate = \"fast\"\n")
-    with pytest.raises(ConfigError, match="bitrate = 'fast'; expected int"):
+    with pytest.raises(ConfigError, match="bitrate = 'fast'[:;] expected (an )?int"):
         _settings(parser.parse_args(["run", "--config", str(tmp_path / "bad.toml")]))
 
 

@@ -9,6 +9,7 @@ frames), hypothesis-generated files mixing every frame kind, and the simulator's
 from __future__ import annotations
 
 import gzip
+import re
 from pathlib import Path
 
 import can
@@ -242,6 +243,11 @@ MALFORMED = {
     9: "(1436509052.249713) can0 123#00 X",
     11: "(1436509052.249713) can0 123##G00",
     12: "(1436509052.249713) can0 123#R99",
+    13: "(14365090522497130000000000000.0) can0 123#00",  # a 29-digit timestamp
+    14: "(1436509052.249713) can0 FFF#00",  # no standard ID is above 7FF
+    15: "(1436509052.249713) can0 C0000123#00",  # EFF|RTR flags written into the ID
+    16: "(1436509052.249713) can0 123##0" + "00" * 9,  # CAN FD has no 9-byte frames
+    17: "(1436509052.249713) can0 123#" + "00" * 10,  # a classic frame of 10 bytes
 }
 
 
@@ -319,3 +325,53 @@ def test_other_formats_go_through_python_can(tmp_path):
     assert len(frames) == 20
     assert frames.frame_id.tolist() == [m.arbitration_id for m in messages]
     assert [bytes(row[:4]) for row in frames.data] == [bytes(m.data) for m in messages]
+
+
+@pytest.mark.parametrize(("line", "code"), [
+    ("(1.000000) can0 123#R64", 12),  # a remote frame's DLC is 0..8
+    ("(1.000000) can0 123#R9", 12),
+    ("(1.000000) can0 123##0R", 12),  # CAN FD has no remote frames
+    ("(1.000000) can0 123##0" + "00" * 13, 16),
+    ("(1.000000) can0 123##0" + "00" * 65, 8),
+    ("(1.000000) can0 40000123#00", 15),
+    ("(1.000000) can0 800#00", 14),
+    ("(1.000000) can0 123##8" + "00" * 8, 11),  # flags nibble: BRS, ESI and FDF only
+])
+def test_frames_no_bus_can_carry_are_malformed(tmp_path, line, code):
+    """These were accepted silently (10-byte classic frames, FD lengths 9 or 13, RTR DLC 64,
+    standard ID FFF, flag bits masked off an ID)."""
+    path = write_lines(tmp_path / "impossible.log", [VARIED_LINES[0], line])
+    with pytest.raises(LogFormatError, match=rf":2: {re.escape(ERROR_REASONS[code])}"):
+        read_candump(path)
+    assert read_candump(path, skip_bad=True).bad_line_numbers == [2]
+
+
+def test_the_fdf_flag_linux_writes_on_fd_frames_is_read(tmp_path):
+    """Linux 6.x sets CANFD_FDF (0x04) in every FD frame's flags, so candump on an FD vcan
+    writes ``##5`` for a BRS frame: refused as a bad flags nibble, it failed the VM's
+    candump logs of the Hyundai CAN FD profile."""
+    lines = ["(1796166122.150084) vcan0 300##58945000000000000",
+             "(1796166122.160084) vcan0 301##40011223344556677"]
+    path = write_lines(tmp_path / "fdf.log", lines)
+    frames = read_candump(path)
+    expected = list(can.CanutilsLogReader(str(path)))
+    assert len(frames) == len(expected) == 2
+    for k, message in enumerate(expected):
+        assert frames.flags[k] & FLAG_FD and message.is_fd
+        assert bool(frames.flags[k] & FLAG_BRS) == message.bitrate_switch
+        assert bytes(frames.data[k, :frames.dlc[k]]) == bytes(message.data)
+
+
+def test_the_error_flag_makes_an_error_frame_whatever_its_class(tmp_path):
+    """SocketCAN's CAN_ERR_FLAG marks an error frame; python-can's reader also wants the
+    bus-error class and reads 20000004 (a controller problem) as a data frame with ID 4."""
+    path = write_lines(tmp_path / "errors.log", ["(1.000000) can0 20000004#0004000000000000"])
+    frames = read_candump(path)
+    assert frames.flags[0] & FLAG_ERROR and frames.frame_id[0] == 0
+
+
+def test_frames_know_their_line_numbers(tmp_path):
+    lines = [VARIED_LINES[0], "", "garbage", VARIED_LINES[1], VARIED_LINES[2]]
+    frames = read_candump(write_lines(tmp_path / "lines.log", lines), skip_bad=True)
+    assert frames.line.tolist() == [1, 4, 5]
+    assert frames.where(1).endswith("lines.log:4")

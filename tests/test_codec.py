@@ -145,7 +145,7 @@ def test_e2e_failures_are_counted_and_not_used():
     counts = codec.error_counts()
     assert counts["IMU_ACCEL"] == {"accepted": 2, "wrong_length": 1, "e2e": 1,
                                    "counter_repeat": 1, "counter_jump": 1, "out_of_range": 0,
-                                   "unknown_id": 0, "not_available": 0}
+                                   "unknown_id": 0, "not_available": 0, "counter_sync": 0}
     assert counts["unknown"]["unknown_id"] == 1
 
 
@@ -168,10 +168,30 @@ def test_stale_channel_becomes_invalid_after_its_timeout():
 
 
 def test_counter_resynchronises_after_a_silence():
+    """After a silence the first frame is the counter's new reference, not used: accepting
+    it unchecked let any value through after every timeout."""
     codec = Codec(DEFAULT)
-    frame_id, payload = _imu_frames(codec, 5)
-    assert codec.decode(frame_id, payload[0], 0.0) >= 0
-    assert codec.decode(frame_id, payload[4], 1.0) >= 0  # silent > timeout: accept new counter
+    frame_id, payload = _imu_frames(codec, 6)
+    assert codec.decode(frame_id, payload[0], 0.0) >= 0  # the very first: no history
+    assert codec.decode(frame_id, payload[1], 0.01) >= 0
+    assert codec.decode(frame_id, payload[4], 1.0) == -2  # silent > timeout: a reference
+    assert codec.decode(frame_id, payload[5], 1.01) >= 0  # in sequence with it: used
+    assert codec.error_counts()["IMU_ACCEL"]["counter_sync"] == 1
+
+
+def test_a_sender_stuck_repeating_one_frame_is_never_accepted_again():
+    """A frozen ECU repeating its last frame: before, its frame was accepted again after
+    every timeout (the counter check was skipped for a silent message), so the stale value
+    kept its channel fresh."""
+    codec = Codec(DEFAULT)
+    frame_id, payload = _imu_frames(codec, 3)
+    for k in range(3):  # in sequence: in use
+        codec.decode(frame_id, payload[k], 0.01 * k)
+    accepted = [codec.decode(frame_id, payload[2], 0.03 + 0.01 * k) for k in range(300)]
+    assert max(accepted) == -2
+    timeout = DEFAULT.channels[In.AX].timeout
+    assert codec.sample(3.0, new_u())[VALID + In.AX] == 0.0 and timeout < 2.9
+    assert codec.error_counts()["IMU_ACCEL"]["counter_repeat"] == 300
 
 
 def test_out_of_range_raw_value_is_rejected():

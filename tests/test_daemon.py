@@ -161,7 +161,8 @@ def test_state_frames_at_100_hz_and_recorder_replays_byte_for_byte(tmp_path, est
     families = {f.name: f for f in text_string_to_metric_families(snapshots[1])}
     ticks = families["slipd_ticks"].samples[0].value  # the parser drops the _total suffix
     assert ticks >= snapshots[0]["counters"]["ticks"] > 0
-    quantiles = {s.labels.get("quantile") for s in families["slipd_cycle_latency_us"].samples}
+    cycle = families["slipd_cycle_latency_seconds"].samples
+    quantiles = {s.labels.get("quantile") for s in cycle}
     assert {"0.5", "0.99", "0.999"} <= quantiles
 
 
@@ -231,31 +232,37 @@ def test_a_state_saved_under_another_layout_is_reported_and_ignored(tmp_path):
         daemon.bus.shutdown()
 
 
-def test_prometheus_endpoint_never_waits_for_a_slow_client():
-    server = StatsServer(None, "127.0.0.1:0")
-    stats = Stats()
-    for value in (100, 200, 300):
-        stats.record("cycle_latency_us", value)
+def test_silent_stats_clients_never_wait_on_the_loop(tmp_path):
+    """A scraper that connects and sends nothing, and a `slipd stats` client that never
+    reads: the loop's poll does not wait for either (they are the stats server's, in its own
+    process), and other clients are still answered."""
+    stats = Stats.in_shared_memory()
+    stats.record("cycle_latency_us", 200)
+    path = str(tmp_path / "stats.sock")
+    server = StatsServer(path, ("127.0.0.1", 0), stats)
+    server.wait_ready()
+    silent_http = socket.create_connection(server.http_address)
+    silent_unix = [socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(50)]
     try:
-        silent = socket.create_connection(server.http_address)
-        time.sleep(0.05)
-        started = time.perf_counter()
-        assert server.poll(stats.snapshot) == 0  # connected, no request yet: not waited for
-        assert time.perf_counter() - started < 0.005
-        silent.sendall(b"GET /metrics HTTP/1.0\r\n\r\n")
-        deadline = time.monotonic() + 2
-        while not server.poll(stats.snapshot) and time.monotonic() < deadline:
-            time.sleep(0.001)
-        body = silent.makefile("rb").read().decode()
-        silent.close()
-        head, _, text = body.partition("\r\n\r\n")
-        assert head.startswith("HTTP/1.0 200")
-        families = {f.name: f for f in text_string_to_metric_families(text)}
-        p50 = [s for s in families["slipd_cycle_latency_us"].samples
-               if s.labels.get("quantile") == "0.5"]
-        assert p50 and p50[0].value == 200
-        assert families["slipd_cycle_latency_us_max"].samples[0].value == 300
+        for client in silent_unix:
+            client.connect(path)
+        answers: list[dict] = []
+        reader = threading.Thread(target=lambda: answers.append(query(path, timeout=10)))
+        reader.start()
+        deadline = time.monotonic() + 10
+        longest = 0.0
+        while reader.is_alive() and time.monotonic() < deadline:
+            started = time.perf_counter()
+            server.poll(lambda fresh: stats.publish((0, 0.0, 0.0, 0.0), None, None))
+            longest = max(longest, time.perf_counter() - started)
+            time.sleep(0.01)
+        reader.join()
+        assert answers and answers[0]["cycle_latency_us"]["p50"] == 200
+        assert longest < 0.005
     finally:
+        silent_http.close()
+        for client in silent_unix:
+            client.close()
         server.close()
 
 

@@ -214,12 +214,25 @@ def test_out_of_range_values_are_counted(tmp_path):
         ("t,ax\n0.02,1\n0.01,2\n", r"goes backwards at data row 2"),
         ("t,ax,ax\n0.0,1,2\n", r"bad\.csv:1: duplicate column"),
         ("", r"empty file"),
+        ("t,ax\n0.0,1\n0.01,inf\n", r"bad\.csv:3: column 'ax': 'inf' is not a measurement"),
+        ("t,ax\n0.0,-Infinity\n", r"bad\.csv:2: column 'ax': '-Infinity' is not a"),
     ],
 )
 def test_bad_tables_name_file_and_line(tmp_path, text, expected):
     (tmp_path / "bad.csv").write_text(text)
     with pytest.raises(LogFormatError, match=expected):
         import_table(tmp_path / "bad.csv", PROFILE, parse_map(["ax=ax"]), tmp_path / "o.log")
+
+
+def test_a_non_utf8_table_and_a_nan_epoch_are_clear_errors(tmp_path, capsys):
+    (tmp_path / "latin1.csv").write_bytes("t,ax\n0.0,1\n# Messfahrt M\xfcnchen\n".encode("latin-1"))
+    with pytest.raises(LogFormatError, match=r"latin1\.csv: not UTF-8 text \(byte 0xfc"):
+        import_table(tmp_path / "latin1.csv", PROFILE, parse_map(["ax=ax"]), tmp_path / "o.log")
+    (tmp_path / "ok.csv").write_text("t,ax\n0.0,1\n")
+    assert main(["import", str(tmp_path / "ok.csv"), "--map", "ax=ax", "--epoch", "nan",
+                 "--out", str(tmp_path / "o.log")]) == 2
+    err = capsys.readouterr().err
+    assert "--epoch nan: expected a finite number" in err and "Traceback" not in err
 
 
 def test_bad_maps_are_clear_errors(tmp_path):

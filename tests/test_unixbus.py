@@ -187,3 +187,49 @@ def test_participants_that_leave_and_join_after_the_sender_connected(bus_dir):
         for bus in (sender, stays, joins):
             if bus is not None:
                 bus.shutdown()
+
+
+def test_a_datagram_that_is_no_can_frame_is_counted_not_a_bus_failure(bus_dir):
+    """A 5-byte datagram on slipd_unix made recv() raise, which the daemon took for a failed
+    bus (outputs invalid until a reopen)."""
+
+    receiver = can.Bus(interface="slipd_unix", channel=bus_dir)
+    sender = can.Bus(interface="slipd_unix", channel=bus_dir)
+    try:
+        _send_junk(receiver, b"\x01\x02\x03\x04\x05", bytes(100),
+                   bytes([0] * 4 + [15] + [0] * 11))
+        sender.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
+        received = receiver.recv(1.0)
+        assert received is not None and received.arbitration_id == 0x123
+        assert receiver.malformed == 3
+    finally:
+        receiver.shutdown()
+        sender.shutdown()
+
+
+def _send_junk(receiver, *datagrams: bytes) -> None:
+    """Datagrams that are no CAN frame, from a socket of no slipd_unix bus."""
+    import socket
+
+    stray = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    for junk in datagrams:
+        stray.sendto(junk, str(receiver.path))
+    stray.close()
+
+
+def test_frames_behind_a_malformed_datagram_are_read_at_once(bus_dir):
+    """A poll (timeout 0) must not stop at a malformed datagram: the frames queued behind it
+    would wait for the next poll (the daemon's late drain took that as an empty queue)."""
+
+    receiver = can.Bus(interface="slipd_unix", channel=bus_dir)
+    sender = can.Bus(interface="slipd_unix", channel=bus_dir)
+    try:
+        _send_junk(receiver, b"\x05")
+        sender.send(can.Message(arbitration_id=0x7, data=b"\x01", is_extended_id=False))
+        time.sleep(0.05)
+        received = receiver.recv(0.0)
+        assert received is not None and received.arbitration_id == 0x7
+        assert receiver.malformed == 1
+    finally:
+        receiver.shutdown()
+        sender.shutdown()

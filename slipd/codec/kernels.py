@@ -19,7 +19,8 @@ big-endian (Motorola) one from its most significant bit in the DBC's "sawtooth" 
 Latch and bookkeeping arrays are owned by the caller (daemon or batch engine):
 
 ``latch`` float64 [3, N_IN]: newest value, its timestamp, 1.0 while set and available;
-``msg_state`` float64 [n_msg, 2]: last alive counter (-1 none), time of the last accepted frame;
+``msg_state`` float64 [n_msg, 2]: last alive counter (-1 none), time it was last seen in
+sequence (or as the reference after a silence);
 ``errors`` int64 [n_msg + 1, N_ERR]: per-message counters, the last row for unknown IDs.
 
 A frame that fails a check updates nothing but its error counter. A value its sender marks
@@ -98,9 +99,10 @@ ERR_COUNTER_JUMP = 4
 ERR_RANGE = 5
 ERR_UNKNOWN_ID = 6
 ERR_NOT_AVAILABLE = 7  # an accepted frame's value its sender marked not available
-N_ERR = 8
+ERR_COUNTER_SYNC = 8  # the counter's reference after a silence (not an error, not used)
+N_ERR = 9
 ERROR_NAMES = ("accepted", "wrong_length", "e2e", "counter_repeat", "counter_jump",
-               "out_of_range", "unknown_id", "not_available")
+               "out_of_range", "unknown_id", "not_available", "counter_sync")
 
 LATCH_VALUE = 0
 LATCH_TIME = 1
@@ -360,11 +362,24 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
             return -2
     if counter_row >= 0:
         last = msg_state[msg, 0]
-        fresh = last >= 0.0 and t - msg_state[msg, 1] <= timeouts[msg]
-        if fresh:
+        if last >= 0.0 and t - msg_state[msg, 1] > timeouts[msg]:
+            # The first frame after a silence longer than the timeout: its counter is the
+            # reference the next one is checked against, so it is not used itself (accepting
+            # it unchecked let a stale sender's frame through after every timeout). AUTOSAR
+            # E2E's state machine likewise wants frames in sequence before it says OK again.
+            # Costs one frame period after an outage. (The very first frame of a message has
+            # no history to be stale against and is used, as before.)
+            msg_state[msg, 0] = counter
+            msg_state[msg, 1] = t
+            errors[msg, ERR_COUNTER_SYNC] += 1
+            return -2
+        if last >= 0.0:
             modulus = 1 << plan_i[counter_row, S_LENGTH]
             delta = (counter - np.int64(last)) % modulus
             if delta == 0:
+                # A repeat keeps the sequence (msg_state[msg, 1] is when the counter was last
+                # seen): a sender stuck repeating one frame is rejected for as long as it is.
+                msg_state[msg, 1] = t
                 errors[msg, ERR_COUNTER_REPEAT] += 1
                 return -2
             if delta > plan_i[msg, M_MAX_DELTA]:
@@ -419,18 +434,28 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
     return msg
 
 
+#: s: how far a latched value may be stamped after the tick that samples it and still count
+#: as fresh. Never, in a replay (a tick latches the frames up to its time) nor in the daemon
+#: (its frames are on its own time base, slipd.daemon.loop); a frame from the future is one
+#: stamped across a wall-clock step, whose age is unknown: counted as fresh it stays valid
+#: for as long as the step, so it is stale. The microsecond covers the recorder's rounding.
+FUTURE_TOLERANCE_S = 1e-6
+
+
 @nb.njit(cache=True)
 def sample_latch(latch, channel_timeouts, calibration, t, u):
     """Sample-and-hold of the latch at tick time ``t`` into the input vector ``u``.
 
-    A channel is valid when it has been set and its newest value is at most its timeout old.
+    A channel is valid when it has been set and its newest value is at most its timeout old
+    (and not stamped after ``t``: FUTURE_TOLERANCE_S).
     Last, the profile's sensor-error corrections (``calibration``, float64 [CAL_LEN], see
     slipd.codec.calibration; inactive without a [calibration] table).
     """
     n_in = latch.shape[1]
     for ch in range(n_in):
         age = t - latch[LATCH_TIME, ch]
-        valid = latch[LATCH_SET, ch] > 0.5 and age <= channel_timeouts[ch]
+        valid = (latch[LATCH_SET, ch] > 0.5 and age <= channel_timeouts[ch]
+                 and age >= -FUTURE_TOLERANCE_S)
         u[ch] = latch[LATCH_VALUE, ch]
         u[n_in + ch] = 1.0 if valid else 0.0
     u[2 * n_in] = t

@@ -59,6 +59,9 @@ def _raster(value: float | None) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import math
+
+    from slipd.errors import ConfigError
     from slipd.profile import load_profile
     from slipd.replay.importer import (
         import_table,
@@ -68,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
         sidecar_path,
     )
 
+    if not math.isfinite(args.epoch):
+        raise ConfigError(f"--epoch {args.epoch}: expected a finite number of seconds")
     report = import_table(
         args.source, load_profile(args.profile), parse_map(args.map), args.out,
         time_spec=args.time, epoch=args.epoch, constants=parse_constants(args.constant),

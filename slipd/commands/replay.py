@@ -269,14 +269,37 @@ def run(args: argparse.Namespace) -> int:
     if len(targets) == 1:
         print(replay_one(*targets[0]))
         return 0
+    return _replay_batch(targets, args.jobs)
+
+
+def _replay_batch(targets: list[tuple], jobs: int) -> int:
+    """Several logs in parallel processes. A log that fails is reported and the others
+    finish; the exit status is then 1. Any exception of a worker is caught here: one bad
+    log's traceback must not abort a night's batch (a SlipdError prints as its message)."""
     from concurrent.futures import ProcessPoolExecutor
 
     from tqdm import tqdm
 
-    with ProcessPoolExecutor(max_workers=args.jobs or None) as pool:
+    from slipd.errors import SlipdError
+
+    failed = []
+    with ProcessPoolExecutor(max_workers=jobs or None) as pool:
         futures = [pool.submit(replay_one, *target) for target in targets]
-        for future in tqdm(futures, desc="replay", unit="log", file=sys.stderr):
-            print(future.result())
+        for (log, *_), future in zip(targets, tqdm(futures, desc="replay", unit="log",
+                                                   file=sys.stderr), strict=True):
+            try:
+                print(future.result(), flush=True)
+            except SlipdError as exc:
+                failed.append(log)
+                print(f"{log}: error: {exc}", file=sys.stderr, flush=True)
+            except Exception as exc:  # noqa: BLE001 - reported with its type, batch goes on
+                failed.append(log)
+                print(f"{log}: error: {type(exc).__name__}: {exc}", file=sys.stderr,
+                      flush=True)
+    if failed:
+        print(f"slipd replay: {len(failed)} of {len(targets)} logs failed: "
+              f"{', '.join(str(log) for log in failed)}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -3,17 +3,87 @@
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 
 from slipd.estimators import registry
 
 SYSTEM_CONFIG = Path("/etc/slipd/slipd.toml")
-#: config-file keys (same names as the options, with underscores)
-CONFIG_KEYS = {"profile", "interface", "channel", "estimator", "recorder", "stats_socket",
-               "prometheus", "state_file", "sched_fifo", "cpu", "mlockall", "timer_slack_ns",
-               "gc_freeze", "spin_us", "buses", "bitrate", "fd", "bus_kwargs", "listen_only"}
+
+
+def _text(value: object) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise ValueError("expected a non-empty string")
+    return value
+
+
+def _flag(value: object) -> bool:
+    """Only true or false: bool("false") is True, which once locked memory when asked not
+    to (`mlockall = "false"`)."""
+    if not isinstance(value, bool):
+        raise ValueError("expected true or false (a TOML boolean, not a string)")
+    return value
+
+
+def _integer(low: int, high: int, note: str = "") -> Callable[[object], int]:
+    def check(value: object) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            raise ValueError(f"expected an integer {low}..{high}{note}")
+        return value
+    return check
+
+
+def _number(low: float, high: float, note: str = "") -> Callable[[object], float]:
+    def check(value: object) -> float:
+        if isinstance(value, bool) or not isinstance(value, int | float) or \
+                not math.isfinite(value) or not low <= value <= high:
+            raise ValueError(f"expected a number {low:g}..{high:g}{note}")
+        return float(value)
+    return check
+
+
+def _bus_table(value: object) -> dict[str, str]:
+    if not isinstance(value, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                              for k, v in value.items()):
+        raise ValueError('expected a table NAME = "CHANNEL"')
+    return value
+
+
+def _table(value: object) -> dict:
+    if not isinstance(value, dict):
+        raise ValueError("expected a table KEY = VALUE")
+    return value
+
+
+def _prometheus(value: object) -> str | int:
+    if isinstance(value, bool) or not isinstance(value, int | str):
+        raise ValueError('expected "HOST:PORT" (e.g. "127.0.0.1:9464") or a port number')
+    return value
+
+
+#: config-file keys (the options' names, with underscores) and their checks
+CONFIG_KEYS: dict[str, Callable[[object], object]] = {
+    "profile": _text, "interface": _text, "channel": _text, "estimator": _text,
+    "recorder": _text, "recorder_max_mb": _number(0.01, 1 << 20, " MB"),
+    "recorder_keep": _integer(0, 10_000, " rotated files"), "recorder_compress": _flag,
+    "stats_socket": _text, "stats_socket_mode": _integer(0, 0o777, " (e.g. 0o660)"),
+    "prometheus": _prometheus, "prometheus_public": _flag, "state_file": _text,
+    "sched_fifo": _integer(0, 99, " (0 = off)"), "cpu": _integer(0, 4095),
+    "mlockall": _flag, "timer_slack_ns": _integer(1, 10_000_000, " ns (1 = no slack)"),
+    "gc_freeze": _flag, "spin_us": _integer(0, 4999, " us (0 = off)"),
+    "silence_warning_s": _number(0, 86400, " s (0 = off)"),
+    "buses": _bus_table, "bitrate": _integer(1, 20_000_000, " bit/s"), "fd": _flag,
+    "bus_kwargs": _table, "listen_only": _flag,
+}
+DEFAULTS = {"profile": "default", "interface": "socketcan", "channel": "can0",
+            "estimator": registry.DEFAULT_ESTIMATOR, "sched_fifo": 0, "mlockall": False,
+            "gc_freeze": False, "spin_us": 0, "recorder_max_mb": 256.0, "recorder_keep": 10,
+            "recorder_compress": True, "stats_socket_mode": 0o660, "prometheus_public": False,
+            "silence_warning_s": 5.0}
 
 
 def parse_bus_map(entries: list[str]) -> dict[str, str]:
@@ -55,10 +125,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimator", help=f"method (default {registry.DEFAULT_ESTIMATOR})")
     parser.add_argument("--duration", type=float, help="stop after S seconds")
     parser.add_argument("--recorder", type=Path, help="flight-recorder candump log")
+    parser.add_argument("--recorder-max-mb", type=float, metavar="MB",
+                        help="rotate the recording at this size (default 256)")
+    parser.add_argument("--recorder-keep", type=int, metavar="N",
+                        help="rotated recordings kept, compressed (default 10)")
     parser.add_argument("--stats-socket", help="unix socket for `slipd stats`")
     parser.add_argument("--prometheus", metavar="HOST:PORT",
-                        help="serve Prometheus metrics (loopback by default, e.g. 127.0.0.1:9464)")
+                        help="serve Prometheus metrics (loopback, e.g. 127.0.0.1:9464)")
+    parser.add_argument("--prometheus-public", action="store_true", default=None,
+                        help="allow --prometheus on a non-loopback address")
     parser.add_argument("--state-file", type=Path, help="persisted offsets/mu (JSON)")
+    parser.add_argument("--silence-warning", type=float, dest="silence_warning_s",
+                        metavar="S", help="warn when the bus delivers no frame for S seconds "
+                                          "(default 5, 0 = off)")
     rt = parser.add_argument_group("real-time settings (each reported; refused = error)")
     rt.add_argument("--sched-fifo", type=int, metavar="PRIO", help="SCHED_FIFO priority")
     rt.add_argument("--cpu", type=int, help="pin to this CPU")
@@ -76,29 +155,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="demo scenario (default double_lane_change)")
 
 
-def _settings(args: argparse.Namespace) -> dict:
+def read_config(path: Path) -> dict:
+    """A config file's settings, each checked: a wrong key or value is a ConfigError naming
+    the file, the key, the value and what was expected."""
     from slipd.errors import ConfigError
 
-    settings = {"profile": "default", "interface": "socketcan", "channel": "can0",
-                "estimator": registry.DEFAULT_ESTIMATOR, "sched_fifo": 0, "mlockall": False,
-                "gc_freeze": False}
+    try:
+        document = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read config: {exc}") from exc
+    unknown = set(document) - set(CONFIG_KEYS)
+    if unknown:
+        raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)}; expected "
+                          f"{sorted(CONFIG_KEYS)}")
+    return {key: _checked(key, value, str(path)) for key, value in document.items()}
+
+
+def _checked(key: str, value: object, source: str) -> object:
+    from slipd.errors import ConfigError
+
+    try:
+        return CONFIG_KEYS[key](value)
+    except ValueError as exc:
+        raise ConfigError(f"{source}: {key} = {value!r}: {exc}") from exc
+
+
+def _settings(args: argparse.Namespace) -> dict:
+    settings = dict(DEFAULTS)
     path = args.config or (SYSTEM_CONFIG if SYSTEM_CONFIG.exists() else None)
     document_keys: set[str] = set()
     if path is not None:
-        try:
-            document = tomllib.loads(Path(path).read_text())
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise ConfigError(f"{path}: cannot read config: {exc}") from exc
-        unknown = set(document) - CONFIG_KEYS
-        if unknown:
-            raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)}; expected "
-                              f"{sorted(CONFIG_KEYS)}")
+        document = read_config(path)
         settings.update(document)
         document_keys = set(document)
     for key in CONFIG_KEYS:
+        if key in ("buses", "bus_kwargs"):  # options of their own shape, parsed below
+            continue
         value = getattr(args, key, None)
         if value is not None:
-            settings[key] = value
+            option = "--" + key.replace("_", "-").removesuffix("-s")
+            settings[key] = _checked(key, str(value) if isinstance(value, Path) else value,
+                                     f"option {option}")
     if getattr(args, "bus", None):
         settings["buses"] = parse_bus_map(args.bus)
     if getattr(args, "bus_kwargs", None):
@@ -163,6 +260,36 @@ def _check_bus_settings(settings: dict, path) -> None:
             raise ConfigError(f"{where}{key} = {value!r}; expected {kind.__name__}")
 
 
+def daemon_config(args: argparse.Namespace):
+    """The DaemonConfig of ``slipd run``'s options and config file, every value checked."""
+    from slipd.daemon.loop import DaemonConfig
+    from slipd.daemon.service import RealtimeOptions
+    from slipd.errors import ConfigError
+    from slipd.profile import load_profile
+
+    s = _settings(args)
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ConfigError(f"--duration {args.duration}: expected a number of seconds > 0")
+    if s.get("cpu") is not None and s["cpu"] >= (os.cpu_count() or 1):
+        raise ConfigError(f"cpu = {s['cpu']}: this machine has CPUs 0..{(os.cpu_count() or 1) - 1}")
+    return DaemonConfig(
+        profile=load_profile(s["profile"]), estimator=s["estimator"],
+        interface=s["interface"], channel=str(s["channel"]), buses=dict(s.get("buses") or {}),
+        fd=s.get("fd"), bitrate=s.get("bitrate"), bus_kwargs=dict(s.get("bus_kwargs") or {}),
+        listen_only=bool(s.get("listen_only")),
+        recorder=Path(s["recorder"]) if s.get("recorder") else None,
+        recorder_max_bytes=int(s["recorder_max_mb"] * 2**20),
+        recorder_keep=s["recorder_keep"], recorder_compress=s["recorder_compress"],
+        stats_socket=s.get("stats_socket"), stats_socket_mode=s["stats_socket_mode"],
+        prometheus=s.get("prometheus"), prometheus_public=s["prometheus_public"],
+        state_file=Path(s["state_file"]) if s.get("state_file") else None,
+        realtime=RealtimeOptions(sched_fifo=s["sched_fifo"], cpu=s.get("cpu"),
+                                 mlockall=s["mlockall"], timer_slack_ns=s.get("timer_slack_ns"),
+                                 gc_freeze=s["gc_freeze"], spin_us=s["spin_us"]),
+        duration=args.duration, silence_warning_s=s["silence_warning_s"],
+    )
+
+
 def _skip_numba_blas_probe() -> None:
     """Keep numba from importing scipy.linalg in the daemon's process.
 
@@ -184,27 +311,9 @@ def run(args: argparse.Namespace) -> int:
 
         return run_demo(args)
     _skip_numba_blas_probe()
-    from slipd.daemon.loop import Daemon, DaemonConfig
-    from slipd.daemon.service import RealtimeOptions
-    from slipd.profile import load_profile
+    from slipd.daemon.loop import Daemon
 
-    s = _settings(args)
-    config = DaemonConfig(
-        profile=load_profile(s["profile"]), estimator=s["estimator"],
-        interface=s["interface"], channel=str(s["channel"]), buses=dict(s.get("buses") or {}),
-        fd=s.get("fd"), bitrate=s.get("bitrate"), bus_kwargs=dict(s.get("bus_kwargs") or {}),
-        listen_only=bool(s.get("listen_only")),
-        recorder=Path(s["recorder"]) if s.get("recorder") else None,
-        stats_socket=s.get("stats_socket"), prometheus=s.get("prometheus"),
-        state_file=Path(s["state_file"]) if s.get("state_file") else None,
-        realtime=RealtimeOptions(sched_fifo=int(s["sched_fifo"]), cpu=s.get("cpu"),
-                                 mlockall=bool(s["mlockall"]),
-                                 timer_slack_ns=s.get("timer_slack_ns"),
-                                 gc_freeze=bool(s["gc_freeze"]),
-                                 spin_us=int(s.get("spin_us") or 0)),
-        duration=args.duration,
-    )
-    daemon = Daemon(config)
+    daemon = Daemon(daemon_config(args))
     snapshot = daemon.run()
     c = snapshot["counters"]
     lat = snapshot["cycle_latency_us"]

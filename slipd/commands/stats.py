@@ -38,15 +38,22 @@ def _table(snapshot: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    """One snapshot, or one every ``--watch`` seconds. While watching, a daemon that does not
+    answer (restarting, say) is reported on the screen and asked again, not the end."""
     from slipd.daemon.stats import query
     from slipd.errors import SlipdError
 
+    if args.watch is not None and not args.watch > 0:
+        raise SlipdError(f"--watch {args.watch}: expected a number of seconds > 0")
     while True:
         try:
             snapshot = query(args.socket)
-        except OSError as exc:
-            raise SlipdError(f"no daemon answers on {args.socket}: {exc}") from exc
-        print(json.dumps(snapshot, indent=1) if args.json else _table(snapshot), flush=True)
+            text = json.dumps(snapshot, indent=1) if args.json else _table(snapshot)
+        except (OSError, ValueError) as exc:
+            if not args.watch:
+                raise SlipdError(f"no daemon answers on {args.socket}: {exc}") from exc
+            text = f"no daemon answers on {args.socket}: {exc} (asking again)"
+        print(text, flush=True)
         if not args.watch:
             return 0
         time.sleep(args.watch)

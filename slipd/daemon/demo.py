@@ -47,6 +47,7 @@ def run_demo(args: argparse.Namespace) -> int:
     import can
 
     from slipd.daemon.loop import Daemon, DaemonConfig
+    from slipd.daemon.stats import summarize
     from slipd.profile import load_profile
     from slipd.replay.player import play, to_messages
     from slipd.replay.readers import read_frames
@@ -73,13 +74,12 @@ def run_demo(args: argparse.Namespace) -> int:
         out = daemon.out
         t_log = time.monotonic() - clock["start"]
         true_beta = float(np.interp(t_log, truth_t, truth_beta))
-        h = daemon.stats.histograms["cycle_latency_us"]
+        h = summarize(daemon.stats.histograms["cycle_latency_us"])  # numpy, not hdrh's loops
         valid = int(out[Out.STATUS]) & ST_VALID
         print(f"t {t_log:6.1f} s  beta {math.degrees(out[Out.BETA]):+6.2f} deg  truth "
               f"{math.degrees(true_beta):+6.2f} deg  vx {out[Out.VX]:5.1f} m/s  "
               f"{'VALID  ' if valid else 'invalid'} status {int(out[Out.STATUS]):#04x}  "
-              f"cycle us p50 {h.get_value_at_percentile(50)} p99 "
-              f"{h.get_value_at_percentile(99)} max {h.get_max_value()}", flush=True)
+              f"cycle us p50 {h['p50']} p99 {h['p99']} max {h['max']}", flush=True)
 
     daemon = Daemon(config, bus=daemon_bus, on_second=live_view)
     original_tick = daemon.tick

@@ -14,6 +14,7 @@ import gc
 import math
 import signal
 import socket
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -24,7 +25,7 @@ import numpy as np
 
 from slipd.channels import N_OUT, ST_INPUT_TIMEOUT, ST_VALID, In, Out, new_u
 from slipd.codec import N_TX, Codec, DecodeState, Tx
-from slipd.codec.kernels import LATCH_SET, LATCH_TIME
+from slipd.codec.kernels import ERROR_NAMES, LATCH_SET, LATCH_TIME
 from slipd.codec.plan import OUTPUT_MESSAGES
 from slipd.codec.tx import fill_tx
 from slipd.daemon.recorder import FlightRecorder
@@ -33,21 +34,41 @@ from slipd.daemon.service import (
     StateStore,
     SystemdNotifier,
     apply_realtime,
+    plausible_state,
     release_compiler_pages,
 )
-from slipd.daemon.stats import Stats, StatsServer
+from slipd.daemon.stats import (
+    Stats,
+    StatsLayout,
+    StatsServer,
+    check_stats_socket,
+    clear,
+    parse_prometheus,
+    summarize,
+)
 from slipd.daemon.transmit import QUEUE_FULL, frame_buffer, frame_writer, payload
 from slipd.errors import ConfigError
 from slipd.estimators import registry
+from slipd.estimators.consistency import Flag
 from slipd.pipeline import TICK_DT, Pipeline, catch_up_steps
 from slipd.profile import Profile
 
+CONSISTENCY_FAIL, CONSISTENCY_WARN = int(Flag.FAIL), int(Flag.WARN)  # counted per tick
 REOPEN_INTERVAL = 1.0  # s between attempts to reopen a vanished interface
 PERSIST_INTERVAL = 60.0  # s
 LATE_DRAIN_MAX = 64  # frames taken from the socket queue before a tick that is already late
+#: s: a change of (wall clock - CLOCK_MONOTONIC) beyond this is a step of the wall clock (NTP
+#: or GNSS setting it, date -s). Slewing moves both clocks alike, so the difference changes
+#: only by steps; the readings around it jitter by well under a microsecond.
+CLOCK_STEP_MIN_S = 1e-3
+CLOCK_READ_MAX_S = 50e-6  # monotonic readings further apart: preempted, measure next tick
 SOCKET_RECEIVE_BUFFER = 1 << 20  # bytes: ~1 s of a full bus queued while the loop is busy
 IFF_UP = 0x1
+SO_MEMINFO = getattr(socket, "SO_MEMINFO", 55)  # linux/socket.h
+SK_MEMINFO_DROPS, SK_MEMINFO_VARS = 8, 9  # linux/sock_diag.h: u32[SK_MEMINFO_VARS]
+EVENTS_KEPT = 50  # bus and tool events listed in the snapshot (the newest; older counted)
 TICK_MESSAGES = ("SLIPD_STATE", "SLIPD_AUX")  # sent every tick; SLIPD_DIAG once a second
+WARM_UP_ALLOWANCE_S = 300.0  # start-up time asked of systemd while numba compiles (cold cache)
 
 
 @dataclass
@@ -64,11 +85,16 @@ class DaemonConfig:
     listen_only: bool = False  # estimate and record, send nothing (also [outputs] listen_only)
     recorder: Path | None = None
     recorder_max_bytes: int = 256 * 1024 * 1024
+    recorder_keep: int = 10  # rotated files kept (slipd.daemon.recorder)
+    recorder_compress: bool = True
     stats_socket: str | None = None
-    prometheus: str | None = None
+    stats_socket_mode: int = 0o660  # owner and group (the unit's `slipd` group) may query
+    prometheus: str | int | None = None  # HOST:PORT or a port (loopback)
+    prometheus_public: bool = False  # a non-loopback Prometheus address is allowed
     state_file: Path | None = None
     realtime: RealtimeOptions = field(default_factory=RealtimeOptions)
     duration: float | None = None  # s; None = until SIGTERM/SIGINT
+    silence_warning_s: float = 5.0  # warn when a bus delivers no frame for this long
 
 
 def bus_channels(config: DaemonConfig) -> dict[str, str]:
@@ -133,6 +159,51 @@ def _require_fd(bus, channel: str) -> None:
         raise ConfigError(f"{channel}: CAN FD frames are needed (the profile has frames over "
                           f"8 bytes or FD outputs) but {why}; is the interface FD-capable "
                           f"(mtu 72)?")
+
+
+def open_bus_at_start(config: DaemonConfig, plan_ids: list[tuple[int, bool]], channel: str,
+                      fd: bool = False):
+    """:func:`open_bus`, with a refusal explained as a ConfigError (an unknown interface, a
+    kernel without CAN, a missing CAN device) instead of python-can's traceback."""
+    import errno
+
+    import can
+
+    where = f"{config.interface}:{channel}"
+    try:
+        return open_bus(config, plan_ids, channel, fd)
+    except can.CanInterfaceNotImplementedError as exc:
+        raise ConfigError(f"--interface {config.interface!r}: {exc}; python-can knows "
+                          f"{', '.join(sorted(can.VALID_INTERFACES))}") from exc
+    except OSError as exc:
+        if exc.errno == errno.EAFNOSUPPORT:
+            raise ConfigError(f"{where}: this kernel has no CAN sockets (AF_CAN: "
+                              f"{exc.strerror}); load the can and can_raw modules, or use "
+                              "--interface slipd_unix or virtual without a CAN bus") from exc
+        if exc.errno == errno.ENODEV:
+            raise ConfigError(f"{where}: no such network interface (`ip link` lists them)"
+                              ) from exc
+        raise ConfigError(f"{where}: cannot open the bus: {exc}") from exc
+    except (can.CanError, ValueError, TypeError) as exc:
+        raise ConfigError(f"{where}: cannot open the bus: {exc}") from exc
+
+
+def receive_overflows(bus) -> int | None:
+    """Frames the kernel dropped because the bus socket's receive queue was full: the
+    socket's ``sk_drops``, the counter SO_RXQ_OVFL reports, read with SO_MEMINFO (one
+    getsockopt, once a second; python-can's receive asks for the timestamp control message
+    only, so SO_RXQ_OVFL's per-frame message would be cut off there). None when the bus has
+    no kernel socket (virtual) or the kernel lacks SO_MEMINFO."""
+    sock = getattr(bus, "socket", None)
+    if sock is None or not hasattr(sock, "getsockopt"):
+        return None
+    try:
+        info = sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, SK_MEMINFO_VARS * 4)
+    except OSError:
+        return None
+    if len(info) < SK_MEMINFO_VARS * 4:
+        return None
+    return struct.unpack_from("=I", info, SK_MEMINFO_DROPS * 4)[0]
 
 
 def _enlarge_receive_buffer(sock) -> None:
@@ -213,7 +284,14 @@ class Daemon:
         self.u = new_u()
         self.out = np.zeros(N_OUT)
         self.tx = np.zeros(N_TX)
-        self.stats = Stats()
+        serve_stats = bool(config.stats_socket or config.prometheus)
+        if config.stats_socket:
+            check_stats_socket(config.stats_socket)
+        prometheus = (parse_prometheus(config.prometheus, config.prometheus_public)
+                      if config.prometheus else None)
+        errors = (*self.codec.inputs.message_names, "unknown")
+        layout = StatsLayout(rows=errors, columns=ERROR_NAMES, only={"unknown": ("unknown_id",)})
+        self.stats = Stats.in_shared_memory(layout) if serve_stats else Stats()
         self.notifier = SystemdNotifier()
         self.on_second = on_second
         self.running = False
@@ -253,9 +331,16 @@ class Daemon:
         self.plan_ids = [plan.ids_on(name) for name in self.bus_names]
         if bus is None or isinstance(bus, dict):
             given = bus or {}
-            self.buses = [given.get(name) or open_bus(config, self.plan_ids[k],
-                                                      self.channels[name], self.fd[k])
-                          for k, name in enumerate(self.bus_names)]
+            self.buses = []
+            try:
+                for k, name in enumerate(self.bus_names):
+                    self.buses.append(given.get(name) or open_bus_at_start(
+                        config, self.plan_ids[k], self.channels[name], self.fd[k]))
+            except BaseException:
+                for opened in self.buses:
+                    if bus is None:
+                        opened.shutdown()
+                raise
         else:  # one bus object for every profile bus (tests, the demo)
             self.buses = [bus] * len(self.bus_names)
         self._owns_bus = bus is None
@@ -273,14 +358,38 @@ class Daemon:
                                             bitrate_switch=outputs.is_fd(name),
                                             data=bytes(outputs.dlc(name)))
                           for name in OUTPUT_MESSAGES}
-        self.recorder = (FlightRecorder(config.recorder, config.recorder_max_bytes,
-                                        self.channels[profile.outputs.bus])
-                         if config.recorder else None)
-        self.server = StatsServer(config.stats_socket, config.prometheus)
         self.bus_down_since: float | None = None
         self._next_reopen = 0.0
-        self.bus_events: list[str] = []
-        self.started_at = 0.0
+        self.started_at = 0.0  # monotonic, set when the loop starts
+        self.bus_events: list[str] = []  # the newest EVENTS_KEPT
+        self.tool_events: list[str] = []  # recorder, stats server: faults of the tools
+        self.events_dropped = 0
+        self._text_version = 0  # bumped when the snapshot's words change (events)
+        self._text_sent = -1
+        #: monotonic time of the last frame received on each bus (None: none yet)
+        self.last_frame_at: list[float | None] = [None] * len(self.bus_names)
+        # The daemon's time base (ticks, input ages, the recording): the wall clock at start
+        # plus CLOCK_MONOTONIC's elapsed time. Frames come stamped by the kernel's wall clock;
+        # a step of it since the start (measured once a tick) is taken off their stamps.
+        self._wall_offset = time.time() - time.monotonic()
+        self._clock_shift = 0.0  # s, the wall clock's steps since the start, summed
+        self._newest_stamp = [-math.inf] * len(self.bus_names)  # per bus, on the time base
+        self._silence_reported = [False] * len(self.bus_names)
+        self._overflow_base = 0  # drops of the sockets before the current ones (reopens)
+        self._overflow_last = 0
+        self.recorder = (FlightRecorder(config.recorder, config.recorder_max_bytes,
+                                        self.channels[profile.outputs.bus],
+                                        keep=config.recorder_keep,
+                                        compress=config.recorder_compress,
+                                        log=self._tool_fault, on_error=self._recorder_failed)
+                         if config.recorder else None)
+        try:
+            self.server = StatsServer(config.stats_socket, prometheus, self.stats,
+                                      log=self._tool_fault,
+                                      socket_mode=config.stats_socket_mode)
+        except BaseException:
+            self._close_owned()
+            raise
         self.first_frame_at: float | None = None
         self._next_miss_log = 0.0  # monotonic time before which a miss is counted, not logged
         self._unlogged_misses = 0
@@ -327,9 +436,14 @@ class Daemon:
         if not slots:
             return "state persistence: the estimator keeps nothing across restarts"
         values, message = self.store.load(self.config.estimator, self.pipeline.layout.hash)
+        values, rejected = plausible_state({k: v for k, v in values.items() if k in slots})
         for name, value in values.items():
-            if name in slots:
-                self.state[slots[name]] = value
+            self.state[slots[name]] = value
+        if rejected:  # a tool's fault: listed in the snapshot too
+            reasons = "; ".join(rejected)
+            self._remember(self.tool_events, f"state file {self.store.path}: {len(rejected)} "
+                           f"saved value(s) rejected, their slots start fresh: {reasons}")
+            message = f"{message}; {len(rejected)} of them rejected (start fresh): {reasons}"
         return message
 
     def save_state(self) -> None:
@@ -349,9 +463,11 @@ class Daemon:
             return
         stats = self.stats
         stats.counters["rx_frames"] += 1
+        now = time.monotonic()
+        self.last_frame_at[index] = now
         frame_id = message.arbitration_id
         stats.rx_per_id[frame_id] = stats.rx_per_id.get(frame_id, 0) + 1
-        timestamp = _microseconds(message.timestamp)
+        timestamp = _microseconds(self._on_time_base(message.timestamp, now, index))
         self.codec.decode(frame_id, message.data, timestamp, message.is_extended_id, bus=index)
         self._last_message = (message, index)
         if self.recorder is not None:
@@ -359,9 +475,43 @@ class Daemon:
                                 rx=True, channel=self.channels[self.bus_names[index]],
                                 fd=message.is_fd, brs=message.bitrate_switch)
 
+    def _on_time_base(self, stamp: float, now: float, index: int) -> float:
+        """A kernel receive stamp (wall clock) on the daemon's time base. Around a step of the
+        wall clock a stamp can be on either side of it (stamped before the step, read after
+        the tick measured it; or the other way round): it is then bounded by what is certain,
+        received by ``now`` and not before the bus's previous frame (a socket's stamps are
+        in order), so an input's age is never negative and the recording stays in order."""
+        t = stamp - self._clock_shift
+        newest = now + self._wall_offset
+        if t > newest:
+            t = newest
+        elif t < self._newest_stamp[index]:
+            t = self._newest_stamp[index]
+        self._newest_stamp[index] = t
+        return t
+
+    def _follow_wall_clock(self) -> None:
+        """Once a tick: measure the wall clock against CLOCK_MONOTONIC; a step of it is
+        counted (clock_steps), reported, and taken off the frames' stamps from now on. Before,
+        the start-up offset was used for good: after a step forward every frame looked fresh
+        for as long as the step (a stale input VALID), after a step back none ever again."""
+        before = time.monotonic()
+        wall = time.time()
+        after = time.monotonic()
+        if after - before > CLOCK_READ_MAX_S:
+            return
+        shift = wall - 0.5 * (before + after) - self._wall_offset
+        step = shift - self._clock_shift
+        if abs(step) > CLOCK_STEP_MIN_S:
+            self._clock_shift = shift
+            self.stats.counters["clock_steps"] += 1
+            self._bus_event(f"the wall clock stepped {step:+.3f} s; ticks, input ages and the "
+                            f"recording stay on slipd's monotonic time base ({shift:+.3f} s "
+                            "from the wall clock now)")
+
     def _receive_until(self, deadline: float, t_tick: float) -> None:
         """Receive and decode frames until ``deadline`` (CLOCK_MONOTONIC; ``t_tick`` is the
-        same instant in wall-clock microseconds, as frames are stamped). A tick that is already
+        same instant on the daemon's time base, _on_time_base). A tick that is already
         late still takes what the socket has queued (at most LATE_DRAIN_MAX frames), so after
         an overrun the tick latches the newest inputs instead of starving them; a frame whose
         receive timestamp is after the tick's time waits for the next tick (``_deferred``).
@@ -405,7 +555,8 @@ class Daemon:
                 self._bus_failed(exc)
                 continue
             if message is not None:
-                if remaining <= 0.0 and _microseconds(message.timestamp) > t_tick:
+                if remaining <= 0.0 and _microseconds(
+                        message.timestamp - self._clock_shift) > t_tick:
                     # Received after the tick's time: it is the next tick's, as a replay of a
                     # bus log latches it, and draining a burst still arriving delayed ticks
                     # by up to a millisecond (measured).
@@ -439,8 +590,7 @@ class Daemon:
             self._next_reopen = self.bus_down_since + REOPEN_INTERVAL
             names = ", ".join(self.channels.values())
             event = f"bus {names} failed: {exc}; outputs invalid until it is back"
-            self.bus_events.append(event)
-            self.log(f"slipd: {event}")
+            self._bus_event(event)
             self.notifier.notify(f"STATUS={event}")
 
     def _try_reopen(self, deadline: float) -> None:
@@ -465,9 +615,9 @@ class Daemon:
                     self._write_frame = frame_writer(self.bus)
                     down = now - self.bus_down_since
                     names = ", ".join(self.channels.values())
-                    event = f"bus {names} reopened after {down:.1f} s"
-                    self.bus_events.append(event)
-                    self.log(f"slipd: {event}")
+                    self._overflow_base += self._overflow_last  # new sockets count from 0
+                    self._overflow_last = 0
+                    self._bus_event(f"bus {names} reopened after {down:.1f} s")
                     self.bus_down_since = None
                     return
                 except (self.can.CanError, OSError, ValueError):
@@ -521,6 +671,11 @@ class Daemon:
         out = self.out
         self._estimate(t_wall, self.state, self.u, out, self.tx, self.steps)
         self.steps = 1
+        verdict = self.pipeline.consistency_flags(self.state)
+        if verdict & CONSISTENCY_FAIL:
+            self.stats.counters["consistency_fail_ticks"] += 1
+        if verdict & CONSISTENCY_WARN:
+            self.stats.counters["consistency_warn_ticks"] += 1
         for name in TICK_MESSAGES:
             self._send(name, t_wall)
         status = int(out[Out.STATUS])
@@ -549,37 +704,124 @@ class Daemon:
                  f"{skipped} tick(s) skipped{earlier}")
 
     def _second(self, rx_rejected_before: int) -> int:
-        """1 Hz housekeeping: SLIPD_DIAG, systemd status/watchdog. Returns rejected total."""
+        """1 Hz housekeeping: SLIPD_DIAG, systemd status/watchdog, the bus's health (kernel
+        drops, silence) and the tools'. Returns the rejected total."""
         stats, tx = self.stats, self.tx
         rejected = self.codec.rejected_total()
-        h = stats.interval
+        interval = summarize(stats.interval)
         tx[Tx.DEADLINE_MISSES] = min(stats.interval_misses, 63)
-        tx[Tx.LATENCY_P50_US] = h.get_value_at_percentile(50)
-        tx[Tx.LATENCY_P99_US] = h.get_value_at_percentile(99)
-        tx[Tx.LATENCY_MAX_US] = h.get_max_value()
+        tx[Tx.LATENCY_P50_US] = interval["p50"]
+        tx[Tx.LATENCY_P99_US] = interval["p99"]
+        tx[Tx.LATENCY_MAX_US] = interval["max"]
         tx[Tx.INPUT_TIMEOUTS] = min(stats.interval_timeouts, 63)
         tx[Tx.RX_ERRORS] = min(rejected - rx_rejected_before, 63)
-        self._send("SLIPD_DIAG", time.time())
+        self._send("SLIPD_DIAG", time.monotonic() + self._wall_offset)
         status_line = (f"STATUS=beta {math.degrees(self.out[Out.BETA]):+.2f} deg, "
                        f"status {self.last_status:#04x}, cycle p99 "
-                       f"{h.get_value_at_percentile(99)} us, misses "
+                       f"{interval['p99']} us, misses "
                        f"{stats.counters['deadline_misses']}")
         healthy = (stats.interval_misses < 50 and self.bus_down_since is None)
         self.notifier.notify(status_line + ("\nWATCHDOG=1" if healthy else ""))
-        h.reset()
+        clear(stats.interval)
         stats.interval_misses = 0
         stats.interval_timeouts = 0
-        stats.decode_errors = self.codec.error_counts()
+        self._check_bus_health()
+        self.server.poll_health()
+        if self.recorder is not None:
+            self.recorder.maybe_rotate()
         if self.on_second is not None:
             self.on_second(self)
         return rejected
 
+    def _check_bus_health(self) -> None:
+        """Frames the kernel dropped (receive queues full), malformed datagrams, and a bus
+        that has delivered nothing for ``silence_warning_s``: each logged when it starts."""
+        stats = self.stats
+        sockets = list({id(bus): bus for bus in self.buses}.values())
+        drops = [receive_overflows(bus) for bus in sockets]
+        if any(d is not None for d in drops):
+            now_dropped = sum(d for d in drops if d is not None)
+            total = self._overflow_base + now_dropped
+            if total > stats.counters["rx_overflows"]:
+                names = ", ".join(self.channels.values())
+                self._bus_event(f"bus {names}: the kernel dropped "
+                                f"{total - stats.counters['rx_overflows']} frame(s), the "
+                                "receive queue was full")
+            stats.counters["rx_overflows"] = total
+            self._overflow_last = now_dropped
+        malformed = sum(getattr(bus, "malformed", 0) for bus in sockets)
+        if malformed > stats.counters["rx_malformed"]:
+            self._bus_event(f"bus {', '.join(self.channels.values())}: {malformed} received "
+                            "datagram(s) were no CAN frame and were dropped")
+            stats.counters["rx_malformed"] = malformed
+        limit = self.config.silence_warning_s
+        if not limit or self.bus_down_since is not None:
+            return
+        now = time.monotonic()
+        for index, name in enumerate(self.bus_names):
+            if not self.plan_ids[index]:
+                continue  # a bus slipd only sends on
+            seen = self.last_frame_at[index]
+            last = seen if seen is not None else self.started_at
+            channel = self.channels[name]
+            if now - last >= limit and not self._silence_reported[index]:
+                self._silence_reported[index] = True
+                since = ("since start" if seen is None else
+                         f"since {seen - self.started_at:.1f} s after start")
+                self._bus_event(f"bus {channel}: no frames for {now - last:.0f} s ({since});"
+                                " outputs say INPUT_TIMEOUT")
+            elif now - last < limit and self._silence_reported[index]:
+                self._silence_reported[index] = False
+                self._bus_event(f"bus {channel}: frames again")
+
+    def _bus_event(self, event: str) -> None:
+        self._remember(self.bus_events, event)
+        self.log(f"slipd: {event}")
+
+    def _tool_fault(self, line: str) -> None:
+        """A line from a tool (recorder, stats server): logged and listed in the snapshot."""
+        self._remember(self.tool_events, line.removeprefix("slipd: "))
+        self.log(line)
+
+    def _remember(self, events: list[str], event: str) -> None:
+        self._text_version += 1
+        events.append(f"{time.monotonic() - self.started_at:.1f} s: {event}"
+                      if self.started_at else event)
+        if len(events) > EVENTS_KEPT:
+            del events[0]
+            self.events_dropped += 1
+
+    def _recorder_failed(self) -> None:
+        self.stats.counters["recorder_errors"] += 1
+
+    def _text_document(self) -> dict:
+        """The snapshot's words (the numbers travel through the shared block)."""
+        recorder = None if self.recorder is None else {
+            "path": str(self.recorder.path), "status": self.recorder.status}
+        return {"estimator": self.config.estimator, "bus_events": list(self.bus_events),
+                "tool_events": list(self.tool_events), "events_dropped": self.events_dropped,
+                "recorder": recorder}
+
+    def _gauges(self) -> tuple[float, ...]:
+        return (self.last_status, math.degrees(self.out[Out.BETA]), self.out[Out.VX],
+                time.monotonic() - self.started_at)
+
+    def _publish(self, fresh: bool) -> bytes:
+        """Answer the stats server (StatsServer.poll): counters into the shared block; the
+        words only when they changed since the last answer (or the server is new)."""
+        text = None
+        if fresh or self._text_sent != self._text_version:
+            text = self._text_document()
+            self._text_sent = self._text_version
+        return self.stats.publish(self._gauges(), self.codec.state.errors, text)
+
     def snapshot(self) -> dict:
-        extra = {"estimator": self.config.estimator, "status": self.last_status,
-                 "beta_deg": math.degrees(self.out[Out.BETA]), "vx_mps": self.out[Out.VX],
-                 "uptime_s": time.monotonic() - self.started_at, "bus_events": self.bus_events}
+        """The whole snapshot, computed here (at the end of a run; tests)."""
         self.stats.decode_errors = self.codec.error_counts()
-        return self.stats.snapshot(extra)
+        extra = dict(zip(("status", "beta_deg", "vx_mps", "uptime_s"), self._gauges(),
+                         strict=True))
+        extra["status"] = int(extra["status"])
+        return self.stats.snapshot({**extra, **self._text_document()})
 
     def _on_gc(self, phase: str, info: dict) -> None:
         """gc.callbacks hook: every collector pause into the gc_pause_us histogram, so a
@@ -595,91 +837,150 @@ class Daemon:
         self.running = False
 
     def run(self) -> dict:
-        """Warm up, notify READY, run ticks until stopped; returns the final snapshot."""
+        """Start up, run ticks until stopped, shut down; returns the final snapshot."""
+        try:
+            self._start_up()
+        except BaseException:
+            self._close_owned()
+            raise
+        previous_handlers = self._take_signals()
+        gc.callbacks.append(self._on_gc)
+        try:
+            self._loop()
+        finally:
+            gc.callbacks.remove(self._on_gc)
+            self._shut_down(previous_handlers)
+        return self.snapshot()
+
+    def _start_up(self) -> None:
+        """Real-time settings, saved state, numba warm-up, the stats server's sockets."""
         config = self.config
         for line in apply_realtime(config.realtime):
             self.log(f"slipd: real-time: {line}")
         self.log(f"slipd: {self.restore_state()}")
+        self.notifier.extend_timeout(WARM_UP_ALLOWANCE_S)  # a cold numba cache compiles
         warm = self.warm_up()
         released = release_compiler_pages()
+        self.server.wait_ready()
         where = ", ".join(f"{name}={channel}{' (FD)' if fd else ''}" for (name, channel), fd
                           in zip(self.channels.items(), self.fd, strict=True))
         self.log(f"slipd: estimator {config.estimator} on {config.interface} {where}"
                  f"{', listen-only: sending nothing' if self.listen_only else ''}"
                  f", numba warm-up {warm * 1e3:.0f} ms, {released / 2**20:.0f} MB of LLVM "
                  "code released from memory")
-        previous_handlers = {}
+
+    def _take_signals(self) -> dict:
+        previous = {}
         if threading.current_thread() is threading.main_thread():
             for signum in (signal.SIGTERM, signal.SIGINT):
-                previous_handlers[signum] = signal.signal(signum, self.request_stop)
-        gc.callbacks.append(self._on_gc)
+                previous[signum] = signal.signal(signum, self.request_stop)
+        return previous
+
+    def _loop(self) -> None:
+        """Ticks on the absolute 10 ms grid until stopped: receive until the tick, the tick,
+        its measurements, then the slack work (after the tick's frames are on the bus)."""
         self.notifier.notify("READY=1\nSTATUS=running")
         self.running = True
         self.ready.set()
-        stats = self.stats
         monotonic = time.monotonic
         self.started_at = monotonic()
-        wall_offset = time.time() - monotonic()
+        wall_offset = self._wall_offset = time.time() - self.started_at
+        self._clock_shift = 0.0
         next_tick = self.started_at + TICK_DT
-        end = self.started_at + config.duration if config.duration else math.inf
-        next_second = self.started_at + 1.0
-        next_persist = self.started_at + PERSIST_INTERVAL
-        rejected = 0
-        try:
-            while self.running and next_tick <= end:
-                t_tick = _microseconds(next_tick + wall_offset)
-                self._receive_until(next_tick, t_tick)
-                woke = monotonic()
-                self.tick(t_tick)
-                sent = monotonic()
-                if self.first_frame_at is None:
-                    self.first_frame_at = sent
-                stats.counters["ticks"] += 1
-                cycle_us = (sent - next_tick) * 1e6
-                stats.record("cycle_latency_us", cycle_us)
-                stats.interval.record_value(min(max(1, int(cycle_us)), 60_000_000))
-                stats.record("compute_us", (sent - woke) * 1e6)
-                stats.record("wakeup_lateness_us", (woke - next_tick) * 1e6)
-                latch = self.codec.state.latch
-                if latch[LATCH_SET, In.YAW_RATE] > 0.5:
-                    stats.record("input_age_us",
-                                 (next_tick + wall_offset - latch[LATCH_TIME, In.YAW_RATE]) * 1e6)
-                next_tick += TICK_DT
-                if sent > next_tick:
-                    # This tick's frame was not out before the next tick: a miss. Ticks whose
-                    # time has already passed are skipped and counted, never bunched up.
-                    behind = int((sent - next_tick) / TICK_DT)
-                    stats.counters["deadline_misses"] += 1 + behind
-                    stats.interval_misses += 1 + behind
-                    next_tick += behind * TICK_DT
-                    self.steps = int(catch_up_steps(behind))
-                    self._report_miss(woke, sent, cycle_us, behind)
-                # Slack work, after this tick's frames are out.
-                if sent >= next_second:
-                    rejected = self._second(rejected)
-                    next_second += 1.0
-                    if self.recorder is not None:
-                        self.recorder.maybe_rotate()
-                if self.server.unix is not None or self.server.http is not None:
-                    self.server.poll(self.snapshot)
-                if sent >= next_persist:
-                    self.save_state()
-                    next_persist += PERSIST_INTERVAL
-        finally:
-            gc.callbacks.remove(self._on_gc)
-            if self._deferred is not None:  # decoded and recorded like every received frame
-                self._on_frame(*self._deferred)
-                self._deferred = None
+        end = self.started_at + self.config.duration if self.config.duration else math.inf
+        slack = _SlackClock(self.started_at)
+        while self.running and next_tick <= end:
+            self._follow_wall_clock()
+            t_tick = _microseconds(next_tick + wall_offset)
+            self._receive_until(next_tick, t_tick)
+            woke = monotonic()
+            self.tick(t_tick)
+            sent = monotonic()
+            self._measure(next_tick, woke, sent, wall_offset)
+            next_tick = self._next_tick(next_tick, woke, sent)
+            self._slack_work(sent, slack)
+
+    def _measure(self, tick: float, woke: float, sent: float, wall_offset: float) -> None:
+        """One tick into the histograms: cycle (tick -> sent), compute, wake-up lateness and
+        the age of the newest yaw-rate frame."""
+        stats = self.stats
+        if self.first_frame_at is None:
+            self.first_frame_at = sent
+        stats.counters["ticks"] += 1
+        cycle_us = (sent - tick) * 1e6
+        stats.record("cycle_latency_us", cycle_us)
+        stats.interval.record_value(min(max(1, int(cycle_us)), 60_000_000))
+        stats.record("compute_us", (sent - woke) * 1e6)
+        stats.record("wakeup_lateness_us", (woke - tick) * 1e6)
+        latch = self.codec.state.latch
+        if latch[LATCH_SET, In.YAW_RATE] > 0.5:
+            stats.record("input_age_us",
+                         (tick + wall_offset - latch[LATCH_TIME, In.YAW_RATE]) * 1e6)
+
+    def _next_tick(self, tick: float, woke: float, sent: float) -> float:
+        """The next tick's time. A tick whose frames were not out before the next tick is a
+        miss; ticks whose time has already passed are skipped and counted, never bunched up,
+        and the next tick steps the estimator once per elapsed tick."""
+        next_tick = tick + TICK_DT
+        if sent > next_tick:
+            stats = self.stats
+            behind = int((sent - next_tick) / TICK_DT)
+            stats.counters["deadline_misses"] += 1 + behind
+            stats.interval_misses += 1 + behind
+            next_tick += behind * TICK_DT
+            self.steps = int(catch_up_steps(behind))
+            self._report_miss(woke, sent, (sent - tick) * 1e6, behind)
+        return next_tick
+
+    def _slack_work(self, sent: float, slack: _SlackClock) -> None:
+        """After the tick's frames are out: 1 Hz housekeeping, the stats server's requests,
+        the state file every PERSIST_INTERVAL."""
+        if sent >= slack.next_second:
+            slack.rejected = self._second(slack.rejected)
+            slack.next_second += 1.0
+        started = time.perf_counter()
+        if self.server.poll(self._publish):  # measured: what a snapshot costs the loop
+            self.stats.record("stats_answer_us", (time.perf_counter() - started) * 1e6)
+        if sent >= slack.next_persist:
             self.save_state()
-            for signum, handler in previous_handlers.items():
-                signal.signal(signum, handler)
-            self.notifier.notify("STOPPING=1")
-            self.server.close()
-            if self.recorder is not None:
-                self.recorder.close()
-            if self._owns_bus:
-                for bus in self.buses:
-                    bus.shutdown()
-            for end in self._syscall_warmer or ():
-                end.close()
-        return self.snapshot()
+            slack.next_persist += PERSIST_INTERVAL
+
+    def _shut_down(self, previous_handlers: dict) -> None:
+        self.running = False  # also when the loop ended by --duration
+        if self._deferred is not None:  # decoded and recorded like every received frame
+            self._on_frame(*self._deferred)
+            self._deferred = None
+        self.save_state()
+        for signum, handler in previous_handlers.items():
+            signal.signal(signum, handler)
+        self.notifier.notify("STOPPING=1")
+        self._close_owned()
+
+    def _close_owned(self) -> None:
+        """Close what the daemon opened: the stats server, the recorder, the bus."""
+        server = getattr(self, "server", None)
+        if server is not None:
+            server.close()
+        if self.recorder is not None:
+            self.recorder.close()
+        if self._owns_bus:
+            for bus in {id(bus): bus for bus in self.buses}.values():
+                bus.shutdown()
+            self._owns_bus = False
+        for end in self._syscall_warmer or ():
+            end.close()
+        self._syscall_warmer = None
+
+
+@dataclass
+class _SlackClock:
+    """When the loop's periodic slack work is next due."""
+
+    started_at: float
+    next_second: float = 0.0
+    next_persist: float = 0.0
+    rejected: int = 0  # input frames rejected up to the last second (SLIPD_DIAG's RX_ERRORS)
+
+    def __post_init__(self) -> None:
+        self.next_second = self.started_at + 1.0
+        self.next_persist = self.started_at + PERSIST_INTERVAL

@@ -5,17 +5,24 @@ No threads: everything here is called from the loop's thread at start, at 1 Hz o
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import gc
 import json
 import math
 import os
+import re
+import signal
 import socket
+import stat
 import sys
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from slipd.errors import ConfigError
 
@@ -24,6 +31,76 @@ MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT = 1, 2, 4
 MADV_DONTNEED = 4
 #: shared objects only needed to compile or load kernels, not to run them
 COMPILER_LIBRARIES = ("libllvmlite.so",)
+
+
+LOOP_CPU_ENV = "SLIPD_LOOP_CPU"  # the loop's pinned CPU, for helper processes to avoid
+
+
+class HelperProcess:
+    """A child started by :func:`spawn_helper` (a ``subprocess.Popen``-like handle)."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+            if pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.poll() is None:
+            if deadline is not None and time.monotonic() >= deadline:
+                raise TimeoutError(f"process {self.pid} still running after {timeout} s")
+            time.sleep(0.01)
+        return self.returncode
+
+    def kill(self) -> None:
+        if self.poll() is None:
+            os.kill(self.pid, signal.SIGKILL)
+
+
+def spawn_helper(argv: list[str], pass_fds: tuple[int, ...] = ()) -> HelperProcess:
+    """Start a helper process (stats server, recorder compressor) from the loop's process.
+
+    ``posix_spawn`` (vfork and exec: no copy of the daemon's page tables, which a fork of a
+    90 MB process with locked memory would make inside the loop's slack) with normal
+    scheduling: a child of a SCHED_FIFO loop would otherwise start at the loop's priority,
+    on its CPU, and run its whole Python start-up before the loop could run again. The child
+    lowers its policy further and leaves the loop's CPU itself (:func:`step_aside`).
+    """
+    for fd in pass_fds:
+        os.set_inheritable(fd, True)
+    try:
+        pid = os.posix_spawn(argv[0], argv, os.environ,
+                             scheduler=(os.SCHED_OTHER, os.sched_param(0)))
+    finally:
+        for fd in pass_fds:
+            os.set_inheritable(fd, False)
+    return HelperProcess(pid)
+
+
+def step_aside(policy: int = os.SCHED_BATCH) -> None:
+    """In a helper process: a scheduling policy below the loop's, and off the loop's CPU when
+    the loop is pinned (``$SLIPD_LOOP_CPU``, set by :func:`apply_realtime`). SCHED_BATCH never
+    preempts a task on waking (the stats server); SCHED_IDLE runs only on an otherwise idle
+    CPU (the recorder's compressor). Not nice(2): the unit's system-call filter forbids
+    setpriority, and a forbidden call kills the process."""
+    try:
+        os.sched_setscheduler(0, policy, os.sched_param(0))
+    except OSError:
+        pass
+    loop_cpu = os.environ.get(LOOP_CPU_ENV, "")
+    if loop_cpu.isdigit():
+        others = set(range(os.cpu_count() or 1)) - {int(loop_cpu)}
+        try:
+            if others:
+                os.sched_setaffinity(0, others & os.sched_getaffinity(0) or others)
+        except OSError:
+            pass
 
 
 class SystemdNotifier:
@@ -44,6 +121,11 @@ class SystemdNotifier:
     @property
     def enabled(self) -> bool:
         return self.socket is not None
+
+    def extend_timeout(self, seconds: float) -> None:
+        """EXTEND_TIMEOUT_USEC: the start-up (or stop) may take ``seconds`` more from now,
+        so a numba warm-up on a cold cache does not run into TimeoutStartSec."""
+        self.notify(f"EXTEND_TIMEOUT_USEC={int(seconds * 1e6)}")
 
     def notify(self, text: str) -> None:
         if self.socket is None:
@@ -80,6 +162,7 @@ def apply_realtime(options: RealtimeOptions) -> list[str]:
             os.sched_setaffinity(0, {options.cpu})
         except OSError as exc:
             raise ConfigError(f"CPU affinity {{{options.cpu}}} refused: {exc}") from exc
+        os.environ[LOOP_CPU_ENV] = str(options.cpu)  # helper processes keep off it
         report.append(f"pinned to CPU {options.cpu}")
     if options.mlockall:
         # MCL_ONFAULT locks pages as they are touched instead of faulting in every mapped
@@ -164,6 +247,182 @@ def _smaps_entries(smaps: str):
         yield entry
 
 
+STATE_FILE_LIMIT = 1 << 20  # bytes: a state file is ~1 kB; anything this big is not one
+TEMPORARY_MARK = ".tmp-"  # .<name>.tmp-XXXX beside the state file while it is written
+LEGACY_TEMPORARY = ".slipd-state-"  # the temporaries' prefix before, for any one state file
+ABANDONED_AFTER_S = 60.0  # a legacy temporary this old was left by a killed writer
+
+
+class StateFileError(ValueError):
+    """A state file that cannot be used (the reason names the file)."""
+
+
+def read_state_document(path: Path) -> dict | None:
+    """The JSON object in a state file, None when there is none; StateFileError when it
+    cannot be one: not a regular file (a directory; a FIFO, which would block start-up),
+    larger than STATE_FILE_LIMIT, not UTF-8, not JSON, nested too deeply, not an object.
+    Integers are read as floats, so a 400-digit one is inf (rejected by the caller as
+    non-finite), not an OverflowError."""
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise StateFileError(f"cannot stat it: {exc.strerror}") from exc
+    if not stat.S_ISREG(info.st_mode):
+        kind = "a directory" if stat.S_ISDIR(info.st_mode) else \
+            "a FIFO" if stat.S_ISFIFO(info.st_mode) else "not a regular file"
+        raise StateFileError(f"it is {kind}")
+    try:  # O_NONBLOCK: a FIFO put there after the stat cannot block start-up either
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        raise StateFileError(f"cannot open it: {exc.strerror}") from exc
+    with os.fdopen(fd, "rb") as handle:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise StateFileError("it is not a regular file")
+        raw = handle.read(STATE_FILE_LIMIT + 1)
+    if len(raw) > STATE_FILE_LIMIT:
+        raise StateFileError(f"it is larger than {STATE_FILE_LIMIT} bytes")
+    try:
+        document = json.loads(raw.decode("utf-8"), parse_int=float)
+    except UnicodeDecodeError as exc:
+        raise StateFileError(f"not UTF-8 ({exc.reason} at byte {exc.start})") from exc
+    except RecursionError as exc:
+        raise StateFileError("nested too deeply") from exc
+    except ValueError as exc:
+        raise StateFileError(f"not JSON ({exc})") from exc
+    if not isinstance(document, dict):
+        raise StateFileError(f"expected a JSON object, found {type(document).__name__}")
+    return document
+
+
+def write_state_document(path: Path, document: dict) -> None:
+    """Write atomically: a temporary beside ``path``, fsync, rename, fsync of the directory.
+    A failure (ENOSPC) removes the temporary and raises the OSError."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}{TEMPORARY_MARK}")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            json.dump(document, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        raise
+    with contextlib.suppress(OSError):
+        directory = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)
+
+
+def remove_stale_temporaries(path: Path) -> int:
+    """Remove what killed writers (SIGKILL, a full disk) left beside ``path``: its own
+    temporaries, and legacy ones older than ABANDONED_AFTER_S. Returns how many."""
+    removed = 0
+    now = time.time()
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:
+        return 0
+    for entry in entries:
+        ours = entry.name.startswith(f".{path.name}{TEMPORARY_MARK}")
+        legacy = entry.name.startswith(LEGACY_TEMPORARY)
+        try:
+            if not (ours or legacy) or not entry.is_file(follow_symlinks=False):
+                continue
+            if legacy and now - entry.stat(follow_symlinks=False).st_mtime < ABANDONED_AFTER_S:
+                continue
+            os.unlink(entry.path)
+            removed += 1
+        except OSError:
+            continue
+    return removed
+
+
+#: Physically plausible bounds of the learnt values the daemon restores, by element name (an
+#: ensemble member's prefix, ``KINEMATIC_HEURISTIC.``, aside): a value beyond its bound, or not
+#: finite, is not one a sensor could have taught (a corrupt file, one edited by hand, or one of
+#: another car), and its slot starts fresh. Every persistent element needs a bound here
+#: (tests/test_state_file.py checks the registry's methods).
+#: rad/s: gyro offsets and biases. Automotive MEMS gyros' zero-rate offsets are specified
+#: within a few deg/s over temperature; 10 deg/s is past any of them.
+GYRO_OFFSET_LIMIT = math.radians(10.0)
+#: m/s^2: accelerometer offsets. A few 0.01 m/s^2 of sensor offset plus mounting tilt and a
+#: permanent road bank (which the Ay offset absorbs, Selmanaj eq. 21): 2 m/s^2 is ~12 deg.
+ACCEL_OFFSET_LIMIT = 2.0
+#: uT: magnetometer calibration terms (Yoon's C, field components with soft and hard iron):
+#: past a MEMS magnetometer's full scale (+-1300 uT), which no learnt term can exceed.
+MAG_FIELD_LIMIT = 1300.0
+PLAUSIBLE_STATE = (
+    # (element name, bound, unit, what it is)
+    (re.compile(r"OFFSETS\.(YAW|ROLL|PITCH)_RATE|YAW_RATE_BIAS"), GYRO_OFFSET_LIMIT, "rad/s",
+     "a gyro offset"),
+    (re.compile(r"OFFSETS\.A[XY]"), ACCEL_OFFSET_LIMIT, "m/s^2", "an accelerometer offset"),
+    (re.compile(r"CAL_C\[[0-8]\]"), MAG_FIELD_LIMIT, "uT", "a magnetometer calibration term"),
+    (re.compile(r"CAL_P\[[0-8]\]"), MAG_FIELD_LIMIT ** 2, "uT^2",
+     "a calibration covariance term"),
+)
+#: 3 x 3 covariance blocks (row-major): restored whole, symmetric and positive semidefinite,
+#: or not at all (a half-restored or indefinite covariance breaks the least squares).
+COVARIANCE_BLOCK = re.compile(r"(?P<block>(.*\.)?CAL_P)\[(?P<index>[0-8])\]$")
+
+
+def plausible_bound(name: str) -> tuple[float, str, str] | None:
+    """(bound, unit, what) of persistent element ``name``; None when none is known."""
+    suffixes = [name.split(".", k)[-1] for k in range(name.count(".") + 1)]  # a.b.c, b.c, c
+    for pattern, bound, unit, what in PLAUSIBLE_STATE:
+        if any(pattern.fullmatch(suffix) for suffix in suffixes):
+            return bound, unit, what
+    return None
+
+
+def plausible_state(values: dict[str, float]) -> tuple[dict[str, float], list[str]]:
+    """The restored values that are finite and within their PLAUSIBLE_STATE bound (a plug-in
+    method's element without one: finite), and a reason for each one rejected (its slot then
+    starts fresh)."""
+    accepted: dict[str, float] = {}
+    rejected: list[str] = []
+    for name, value in values.items():
+        known = plausible_bound(name)
+        if not math.isfinite(value):
+            rejected.append(f"{name} = {value!r} is not a finite number")
+        elif known is not None and abs(value) > known[0]:
+            bound, unit, what = known
+            rejected.append(f"{name} = {value:.6g} {unit} is beyond +-{bound:.6g} {unit}, "
+                            f"implausible for {what}")
+        else:
+            accepted[name] = value
+    blocks: dict[str, dict[int, str]] = {}
+    for name in list(accepted):
+        match = COVARIANCE_BLOCK.match(name)
+        if match:
+            blocks.setdefault(match["block"], {})[int(match["index"])] = name
+    for block, names in blocks.items():
+        reason = _covariance_problem([accepted.get(names.get(i, ""), math.nan)
+                                      for i in range(9)])
+        if reason:
+            for name in names.values():
+                del accepted[name]
+            rejected.append(f"{block} is {reason}")
+    return accepted, rejected
+
+
+def _covariance_problem(entries: list[float]) -> str | None:
+    if not all(math.isfinite(v) for v in entries):
+        return "not complete"
+    matrix = np.array(entries).reshape(3, 3)
+    scale = max(float(np.abs(matrix).max()), 1e-300)
+    if np.abs(matrix - matrix.T).max() > 1e-6 * scale:
+        return "not symmetric"
+    if np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min() < -1e-9 * scale:
+        return "not positive semidefinite"
+    return None
+
+
 class StateStore:
     """Persisted estimator state (learnt offsets, calibrations) as JSON, written atomically.
 
@@ -180,23 +439,25 @@ class StateStore:
         """Saved {element name: value} for ``method`` under state layout hash ``layout``."""
         if self.path is None:
             return {}, "state persistence off"
-        if not self.path.exists():
-            return {}, f"no saved state at {self.path}"
+        cleaned = remove_stale_temporaries(self.path)
+        note = f" ({cleaned} temporary file(s) of killed writers removed)" if cleaned else ""
         try:
-            document = json.loads(self.path.read_text())
+            document = read_state_document(self.path)
+            if document is None:
+                return {}, f"no saved state at {self.path}{note}"
             if document.get("method") != method:
                 return {}, (f"saved state in {self.path} is for {document.get('method')!r}, "
-                            f"not {method!r}: ignored")
+                            f"not {method!r}: ignored{note}")
             if document.get("layout") != layout:
                 return {}, (f"saved state in {self.path} has state layout "
                             f"{document.get('layout')!r}, this slipd's {method} has {layout!r} "
-                            "(saved by another version): ignored")
+                            f"(saved by another version): ignored{note}")
+            # floats, finite or not: plausible_state judges each one (one bad value costs
+            # its own slot, not the others)
             values = {str(k): float(v) for k, v in document["state"].items()}
-            if any(not math.isfinite(v) for v in values.values()):
-                raise ValueError("non-finite value")
-            return values, f"restored {len(values)} state values from {self.path}"
-        except (ValueError, KeyError, TypeError, AttributeError) as exc:
-            return {}, f"state file {self.path} is corrupt ({exc}): ignored"
+            return values, f"restored {len(values)} state values from {self.path}{note}"
+        except (ValueError, KeyError, TypeError, AttributeError, OverflowError) as exc:
+            return {}, f"state file {self.path} is corrupt ({exc}): ignored{note}"
 
     def save(self, method: str, layout: str, values: dict[str, float]) -> None:
         if self.path is None or not values:
@@ -204,10 +465,4 @@ class StateStore:
         document = {"method": method, "layout": layout,
                     "state": {name: value for name, value in values.items()
                               if math.isfinite(value)}}
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=".slipd-state-")
-        with os.fdopen(fd, "w") as handle:
-            json.dump(document, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, self.path)
+        write_state_document(self.path, document)

@@ -21,7 +21,9 @@ checks each received frame against the filters, so a sender that has not yet rea
 filter file costs time, never a wrong frame.
 
 A receiver whose socket buffer is full loses that frame, like a SocketCAN socket whose
-receive queue overflows; the sender counts such losses in ``dropped``.
+receive queue overflows; the sender counts such losses in ``dropped``. A datagram that is
+not a CAN frame (any process may write to the directory's sockets) is dropped and counted in
+``malformed``, never an error of the bus: a 5-byte datagram once failed the daemon's bus.
 """
 
 from __future__ import annotations
@@ -52,6 +54,12 @@ RECEIVE_BUFFER = 1 << 20
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # the socket module lacks it on 3.11
 TIMESPEC = struct.Struct("@qq")  # struct timespec on 64-bit Linux
 TIMESTAMP_SPACE = socket.CMSG_SPACE(TIMESPEC.size)
+
+
+def _lengths_fit(datagram: bytes) -> bool:
+    """The frame's length field fits its struct (at most 8, or 64 for CAN FD)."""
+    length = datagram[4]
+    return length <= (8 if len(datagram) == CLASSIC.size else 64)
 
 
 def _filter_path(socket_path: Path) -> Path:
@@ -110,6 +118,7 @@ class UnixDatagramBus(can.BusABC):
         self.receive_own_messages = receive_own_messages
         self.channel_info = f"unix datagram bus {self.directory}"
         self.dropped = 0
+        self.malformed = 0
         self._peers: list[_Peer] = []
         self._peers_read = 0.0
         self._directory_mtime = -1
@@ -232,18 +241,23 @@ class UnixDatagramBus(can.BusABC):
         if not self.receive:
             raise can.CanOperationError(f"{self.channel_info}: this participant was opened "
                                         "send-only (receive=False)")
-        try:
-            datagram, ancillary, _, _ = self.socket.recvmsg(FD.size, TIMESTAMP_SPACE)
-        except BlockingIOError:
-            if timeout is not None and timeout <= 0:
-                return None, False
-            readable, _, _ = select.select([self.socket], [], [], timeout)
-            if not readable:
-                return None, False
+        waited = False
+        while True:
             try:
-                datagram, ancillary, _, _ = self.socket.recvmsg(FD.size, TIMESTAMP_SPACE)
+                datagram, ancillary, flags, _ = self.socket.recvmsg(FD.size + 1,
+                                                                    TIMESTAMP_SPACE)
             except BlockingIOError:
-                return None, False
+                if waited or (timeout is not None and timeout <= 0):
+                    return None, False
+                readable, _, _ = select.select([self.socket], [], [], timeout)
+                if not readable:
+                    return None, False
+                waited = True  # once: python-can's recv() owns the rest of the timeout
+                continue
+            if len(datagram) in (CLASSIC.size, FD.size) and not flags & socket.MSG_TRUNC \
+                    and _lengths_fit(datagram):
+                break
+            self.malformed += 1  # and the next datagram, at once: frames may wait behind it
         stamp = time.time()
         for level, kind, value in ancillary:
             if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:

@@ -2,10 +2,15 @@
 
 Line format: ``(SECONDS.FRACTION) CHANNEL ID#DATA [R|T]`` where ID has 3 hex digits
 (standard) or 8 (extended), DATA is hex pairs, ``##F`` starts a CAN FD payload with flags
-nibble F (bit 0 BRS, bit 1 ESI), ``#R[DLC]`` is a remote frame, and the optional trailing
-``R``/``T`` is python-can's receive/transmit marker. Frames equal python-can's
-``CanutilsLogReader`` on the same file (tests compare them), including its rule that an ID
-with the error flag (0x20000000) and the bus-error class (0x80) is an error frame.
+nibble F (bit 0 BRS, bit 1 ESI, bit 2 FDF: Linux sets CANFD_FDF on every FD frame since
+6.x, so its candump writes ``##5`` for a BRS frame), ``#R[DLC]`` is a remote frame, and the
+optional trailing ``R``/``T`` is python-can's receive/transmit marker. Frames equal python-can's
+``CanutilsLogReader`` on the same file (tests compare them), with two departures: an ID
+with the error flag (0x20000000) is an error frame whatever its error classes (python-can
+also asks for the bus-error class 0x80 and otherwise reads the class bits as an ID), and
+lines a bus cannot carry are malformed, not accepted (python-can reads them): classic frames
+over 8 bytes, CAN FD lengths between the DLC steps, remote DLCs over 8, a 3-digit ID above
+7FF, flag bits other than the error flag above a 29-bit ID.
 
 A malformed line raises :class:`LogFormatError` naming file and line; with ``skip_bad=True``
 bad lines are counted and their first line numbers kept instead.
@@ -15,6 +20,7 @@ from __future__ import annotations
 
 import gzip
 import mmap
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,8 +39,8 @@ FLAG_TX = 64  # trailing " T" (python-can: is_rx False)
 FLAG_DIRECTION = 128  # the line carried a trailing R/T marker
 
 CAN_ERR_FLAG = 0x20000000
-CAN_ERR_BUSERROR = 0x00000080
 MAX_CHANNELS = 64
+MAX_SECONDS_DIGITS = 12  # epoch seconds have 10; more is no clock a CAN logger has
 
 ERROR_REASONS = {
     1: "expected '(' and a timestamp",
@@ -47,8 +53,13 @@ ERROR_REASONS = {
     8: "data longer than 64 bytes",
     9: "unexpected text after the frame (expected R, T or end of line)",
     10: "more than 64 distinct channel names",
-    11: "bad CAN FD flags nibble",
-    12: "bad remote-frame length",
+    11: "bad CAN FD flags nibble (expected 0-7: BRS, ESI, FDF)",
+    12: "bad remote frame (a DLC of 0-8, and CAN FD has none)",
+    13: f"timestamp has more than {MAX_SECONDS_DIGITS} digits of seconds",
+    14: "a 3-digit (standard) CAN ID above 7FF",
+    15: "CAN ID above 1FFFFFFF (only the error flag 20000000 may be set above it)",
+    16: "CAN FD data length is not one a bus carries (0-8, 12, 16, 20, 24, 32, 48, 64)",
+    17: "classic CAN frame with more than 8 data bytes (CAN FD is written ID##F...)",
 }
 
 
@@ -66,14 +77,23 @@ class Frames:
     source: str = ""
     bad_lines: int = 0
     bad_line_numbers: list[int] = field(default_factory=list)
+    #: int64 line number (candump) or record number (other formats, from 1) of each frame
+    line: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t)
 
+    def where(self, index: int) -> str:
+        """``FILE:LINE`` of frame ``index`` (``FILE frame N`` when lines are not known)."""
+        if self.line is not None:
+            return f"{self.source}:{int(self.line[index])}"
+        return f"{self.source} frame {index + 1}"
+
     def select(self, mask: np.ndarray) -> Frames:
         return Frames(self.t[mask], self.frame_id[mask], self.flags[mask], self.dlc[mask],
                       self.data[mask], self.channel[mask], self.channels, self.source,
-                      self.bad_lines, self.bad_line_numbers)
+                      self.bad_lines, self.bad_line_numbers,
+                      None if self.line is None else self.line[mask])
 
 
 @nb.njit(cache=True)
@@ -87,13 +107,208 @@ def _hex(c):
     return -1
 
 
+# Stage results: (error code or 0, position after the field, values...). Every stage reads
+# the line's bytes ``buf[p:stop]`` (trailing blanks and CR trimmed) and never looks beyond.
+
+
+@nb.njit(cache=True)
+def _scan_timestamp(buf, p, stop):
+    """``(SECONDS.FRACTION) ``: (code, p, int_part, frac, int_digits, frac_digits, approx).
+
+    ``approx`` is the value as a double (exact when the caller's exactness test passes; a
+    long fraction is summed from its first 17 digits); seconds have at most
+    MAX_SECONDS_DIGITS digits (epoch seconds have 10), which keeps ``int_part`` exact."""
+    int_part = 0
+    frac = 0
+    digits = 0
+    frac_digits = 0
+    approx_frac = 0.0
+    weight = 0.1
+    if buf[p] != 40:
+        return 1, p, 0, 0, 0, 0, 0.0
+    p += 1
+    while p < stop and 48 <= buf[p] <= 57:
+        if digits < MAX_SECONDS_DIGITS:
+            int_part = int_part * 10 + (buf[p] - 48)
+        digits += 1
+        p += 1
+    if digits > MAX_SECONDS_DIGITS:
+        return 13, p, 0, 0, 0, 0, 0.0
+    if digits == 0 or p >= stop or buf[p] != 46:
+        return 2, p, 0, 0, 0, 0, 0.0
+    p += 1
+    while p < stop and 48 <= buf[p] <= 57:
+        if frac_digits < 18:
+            frac = frac * 10 + (buf[p] - 48)
+        if frac_digits < 17:
+            approx_frac += (buf[p] - 48) * weight
+            weight *= 0.1
+        frac_digits += 1
+        p += 1
+    if frac_digits == 0:
+        return 2, p, 0, 0, 0, 0, 0.0
+    if p + 1 >= stop or buf[p] != 41 or buf[p + 1] != 32:
+        return 3, p, 0, 0, 0, 0, 0.0
+    return 0, p + 2, int_part, frac, digits, frac_digits, int_part + approx_frac
+
+
+@nb.njit(cache=True)
+def _scan_channel(buf, p, stop):
+    """The interface name: (code, p, start, length)."""
+    while p < stop and buf[p] == 32:
+        p += 1
+    start = p
+    while p < stop and buf[p] != 32 and buf[p] != 9:
+        p += 1
+    if p == start or p >= stop:
+        return 4, p, start, 0
+    return 0, p, start, p - start
+
+
+@nb.njit(cache=True)
+def _scan_id(buf, p, stop):
+    """``ID#``: (code, p after '#', can_id, digits). Three digits are a standard ID (at most
+    7FF), more an extended one; 8 digits may carry the error flag (an error frame); the RTR
+    and EFF flag bits are not part of an ID and are refused, not masked away."""
+    while p < stop and buf[p] == 32:
+        p += 1
+    can_id = 0
+    digits = 0
+    while p < stop and buf[p] != 35:
+        h = _hex(buf[p])
+        if h < 0:
+            return 5, p, 0, 0
+        can_id = can_id * 16 + h
+        digits += 1
+        p += 1
+    if digits == 0 or p >= stop:
+        return 5, p, 0, 0
+    if digits > 8:
+        return 6, p, 0, 0
+    if digits <= 3 and can_id > 0x7FF:
+        return 14, p, 0, 0
+    if can_id > 0x1FFFFFFF and (can_id & ~0x3FFFFFFF) != 0:
+        return 15, p, 0, 0
+    return 0, p + 1, can_id, digits
+
+
+@nb.njit(cache=True)
+def _valid_fd_length(length):
+    return length <= 8 or length == 12 or length == 16 or length == 20 or length == 24 or \
+        length == 32 or length == 48 or length == 64
+
+
+@nb.njit(cache=True)
+def _scan_payload(buf, p, stop, width, row, data_out):
+    """After ``#``: an FD flags nibble (``#F``), a remote frame (``R[DLC]``) or hex data
+    bytes written into ``data_out[row]`` (when ``row`` is in range and the byte fits
+    ``width``). Returns (code, p, flags, length); lengths a bus cannot carry are refused:
+    classic data over 8 bytes, FD lengths between the DLC steps, a remote DLC over 8."""
+    flags = 0
+    length = 0
+    if p < stop and buf[p] == 35:
+        flags |= FLAG_FD
+        p += 1
+        fd = _hex(buf[p]) if p < stop else -1
+        if fd < 0 or fd > 7:  # bit 3 is no flag of struct canfd_frame
+            return 11, p, 0, 0
+        if fd & 1:
+            flags |= FLAG_BRS
+        if fd & 2:
+            flags |= FLAG_ESI
+        p += 1
+    if p < stop and (buf[p] == 82 or buf[p] == 114):
+        if flags & FLAG_FD:
+            return 12, p, 0, 0  # CAN FD has no remote frames
+        flags |= FLAG_REMOTE
+        p += 1
+        while p < stop and 48 <= buf[p] <= 57:
+            length = length * 10 + (buf[p] - 48)
+            if length > 8:
+                return 12, p, 0, 0
+            p += 1
+        return 0, p, flags, length
+    while p < stop and buf[p] != 32 and buf[p] != 9:
+        if p + 1 >= stop:
+            return 7, p, 0, 0
+        hi = _hex(buf[p])
+        lo = _hex(buf[p + 1])
+        if hi < 0 or lo < 0:
+            return 7, p, 0, 0
+        if length >= 64:
+            return 8, p, 0, 0
+        if length < width and row < data_out.shape[0]:
+            data_out[row, length] = hi * 16 + lo
+        length += 1
+        p += 2
+    if flags & FLAG_FD:
+        if not _valid_fd_length(length):
+            return 16, p, 0, 0
+    elif length > 8:
+        return 17, p, 0, 0
+    return 0, p, flags, length
+
+
+@nb.njit(cache=True)
+def _scan_marker(buf, p, stop):
+    """Optional trailing ``R``/``T`` (python-can's direction): (code, flags)."""
+    while p < stop and (buf[p] == 32 or buf[p] == 9):
+        p += 1
+    if p >= stop:
+        return 0, 0
+    if p + 1 == stop and (buf[p] == 82 or buf[p] == 114):
+        return 0, FLAG_DIRECTION
+    if p + 1 == stop and (buf[p] == 84 or buf[p] == 116):
+        return 0, FLAG_DIRECTION | FLAG_TX
+    return 9, 0
+
+
+@nb.njit(cache=True)
+def _channel_index(buf, start, length, chan_table, n_chan):
+    """Index of the channel name ``buf[start:start+length]`` in ``chan_table``, added when
+    new: (code, index, n_chan)."""
+    for c in range(n_chan):
+        off = chan_table[c, 0]
+        if chan_table[c, 1] != length:
+            continue
+        same = True
+        for j in range(length):
+            if buf[off + j] != buf[start + j]:
+                same = False
+                break
+        if same:
+            return 0, c, n_chan
+    if n_chan >= chan_table.shape[0]:
+        return 10, -1, n_chan
+    chan_table[n_chan, 0] = start
+    chan_table[n_chan, 1] = length
+    return 0, n_chan, n_chan + 1
+
+
+@nb.njit(cache=True)
+def _line_bounds(buf, pos):
+    """(first non-blank byte, end after trimming blanks/CR, start of the next line)."""
+    n = buf.shape[0]
+    end = pos
+    while end < n and buf[end] != 10:
+        end += 1
+    stop = end
+    while stop > pos and (buf[stop - 1] == 32 or buf[stop - 1] == 13 or buf[stop - 1] == 9):
+        stop -= 1
+    p = pos
+    while p < stop and (buf[p] == 32 or buf[p] == 9):
+        p += 1
+    return p, stop, end + 1
+
+
 @nb.njit(cache=True)
 def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, chan_out,
-           chan_table, bad_out, fallback_out):
+           line_out, chan_table, bad_out, fallback_out):
     """Parse every line; returns (n_frames, n_bad, first_error_line, error_code, n_channels,
     needed_width). ``chan_table`` [MAX_CHANNELS, 2] holds (offset, length) of each distinct
-    channel name. ``fallback_out`` holds, per frame, the line number of a timestamp with too
-    many digits to parse exactly here (Python re-parses those lines), else 0."""
+    channel name. ``line_out`` gets each frame's line number. ``fallback_out`` holds, per
+    frame, the line number of a timestamp with too many digits to parse exactly here (Python
+    re-parses those lines), else 0."""
     n = buf.shape[0]
     pos = 0
     line_no = 0
@@ -103,192 +318,73 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
     needed = 0
     while pos < n:
         line_no += 1
-        end = pos
-        while end < n and buf[end] != 10:
-            end += 1
-        next_pos = end + 1
-        # trim trailing whitespace / CR
-        stop = end
-        while stop > pos and (buf[stop - 1] == 32 or buf[stop - 1] == 13 or buf[stop - 1] == 9):
-            stop -= 1
-        p = pos
-        while p < stop and (buf[p] == 32 or buf[p] == 9):
-            p += 1
+        p, stop, next_pos = _line_bounds(buf, pos)
+        pos = next_pos
         if p >= stop:
-            pos = next_pos
             continue
-        code = 0
-        # ---- timestamp
-        int_part = 0
-        frac = 0
-        frac_digits = 0
-        digits = 0
-        if buf[p] != 40:
-            code = 1
-        else:
-            p += 1
-            while p < stop and 48 <= buf[p] <= 57:
-                int_part = int_part * 10 + (buf[p] - 48)
-                digits += 1
-                p += 1
-            if digits == 0 or p >= stop or buf[p] != 46:
-                code = 2
-            else:
-                p += 1
-                while p < stop and 48 <= buf[p] <= 57:
-                    frac = frac * 10 + (buf[p] - 48)
-                    frac_digits += 1
-                    p += 1
-                if frac_digits == 0:
-                    code = 2
-                elif p + 1 >= stop or buf[p] != 41 or buf[p + 1] != 32:
-                    code = 3
-                else:
-                    p += 2
-        # ---- channel
-        chan_start = p
-        if code == 0:
-            while p < stop and buf[p] == 32:
-                p += 1
-            chan_start = p
-            while p < stop and buf[p] != 32 and buf[p] != 9:
-                p += 1
-            if p == chan_start or p >= stop:
-                code = 4
-        chan_len = p - chan_start
-        # ---- id
+        code, p, int_part, frac, digits, frac_digits, approx = _scan_timestamp(buf, p, stop)
+        chan_start = 0
+        chan_len = 0
         can_id = 0
         id_digits = 0
-        if code == 0:
-            while p < stop and buf[p] == 32:
-                p += 1
-            while p < stop and buf[p] != 35:
-                h = _hex(buf[p])
-                if h < 0:
-                    code = 5
-                    break
-                can_id = can_id * 16 + h
-                id_digits += 1
-                p += 1
-            if code == 0 and (id_digits == 0 or p >= stop):
-                code = 5
-            elif code == 0 and id_digits > 8:
-                code = 6
-            p += 1  # '#'
         flags = 0
         length = 0
-        if code == 0:
-            if id_digits > 3:
-                flags |= 1
-            if p < stop and buf[p] == 35:
-                flags |= 8
-                p += 1
-                fd = _hex(buf[p]) if p < stop else -1
-                if fd < 0:
-                    code = 11
-                else:
-                    if fd & 1:
-                        flags |= 16
-                    if fd & 2:
-                        flags |= 32
-                    p += 1
-            if code == 0 and p < stop and (buf[p] == 82 or buf[p] == 114):
-                flags |= 2
-                p += 1
-                while p < stop and 48 <= buf[p] <= 57:
-                    length = length * 10 + (buf[p] - 48)
-                    p += 1
-                if length > 64:
-                    code = 12
-            elif code == 0:
-                while p < stop and buf[p] != 32 and buf[p] != 9:
-                    if p + 1 >= stop:
-                        code = 7
-                        break
-                    hi = _hex(buf[p])
-                    lo = _hex(buf[p + 1])
-                    if hi < 0 or lo < 0:
-                        code = 7
-                        break
-                    if length >= 64:
-                        code = 8
-                        break
-                    if length < width and count < t_out.shape[0]:
-                        data_out[count, length] = hi * 16 + lo
-                    length += 1
-                    p += 2
-        if code == 0:
-            while p < stop and (buf[p] == 32 or buf[p] == 9):
-                p += 1
-            if p < stop:
-                if p + 1 == stop and (buf[p] == 82 or buf[p] == 114):
-                    flags |= 128
-                elif p + 1 == stop and (buf[p] == 84 or buf[p] == 116):
-                    flags |= 128 | 64
-                else:
-                    code = 9
         chan_index = -1
         if code == 0:
-            for c in range(n_chan):
-                off = chan_table[c, 0]
-                ln = chan_table[c, 1]
-                if ln == chan_len:
-                    same = True
-                    for j in range(ln):
-                        if buf[off + j] != buf[chan_start + j]:
-                            same = False
-                            break
-                    if same:
-                        chan_index = c
-                        break
-            if chan_index < 0:
-                if n_chan >= chan_table.shape[0]:
-                    code = 10
-                else:
-                    chan_table[n_chan, 0] = chan_start
-                    chan_table[n_chan, 1] = chan_len
-                    chan_index = n_chan
-                    n_chan += 1
+            code, p, chan_start, chan_len = _scan_channel(buf, p, stop)
+        if code == 0:
+            code, p, can_id, id_digits = _scan_id(buf, p, stop)
+        if code == 0:
+            code, p, flags, length = _scan_payload(buf, p, stop, width, count, data_out)
+        if code == 0:
+            code, marker = _scan_marker(buf, p, stop)
+            flags |= marker
+        if code == 0:
+            code, chan_index, n_chan = _channel_index(buf, chan_start, chan_len, chan_table,
+                                                      n_chan)
         if code != 0:
             if not skip_bad:
                 return count, n_bad, line_no, code, n_chan, needed
             if n_bad < bad_out.shape[0]:
                 bad_out[n_bad] = line_no
             n_bad += 1
-            # wipe any data bytes written for this line
-            if count < t_out.shape[0]:
+            if count < t_out.shape[0]:  # wipe any data bytes written for this line
                 for j in range(width):
                     data_out[count, j] = 0
-            pos = next_pos
             continue
-        if (can_id & 0x20000000) != 0 and (can_id & 0x80) != 0:
-            flags = (flags & (128 | 64)) | 4
+        if id_digits > 3:
+            flags |= FLAG_EXTENDED
+        if (can_id & CAN_ERR_FLAG) != 0:
+            # An error frame: SocketCAN's CAN_ERR_FLAG marks one, whatever its classes
+            # (python-can's reader asks for the bus-error class too: see the module doc).
+            flags = (flags & (FLAG_DIRECTION | FLAG_TX)) | FLAG_ERROR
             can_id = 0
             length = 8 if length == 0 else length
-        else:
-            can_id &= 0x1FFFFFFF
         if length > needed:
             needed = length
         # (int_part * 10^n + frac) is exact below 2^53, and one division by an exact power
         # of ten is then correctly rounded: the same double as Python's float() of the text.
         scale = 10.0**frac_digits
-        exact = digits + frac_digits <= 18 and frac_digits <= 22 and (
-            int_part * 10**frac_digits + frac) < 9007199254740992
-        t_out[count] = (int_part * scale + frac) / scale
+        exact = digits + frac_digits <= 18 and (int_part * 10**frac_digits + frac) < 2**53
+        t_out[count] = (int_part * scale + frac) / scale if exact else approx
         fallback_out[count] = 0 if exact else line_no
         id_out[count] = can_id
         flags_out[count] = flags
         dlc_out[count] = length
         chan_out[count] = chan_index
+        line_out[count] = line_no
         count += 1
-        pos = next_pos
     return count, n_bad, 0, 0, n_chan, needed
 
 
 def _load_bytes(path: Path) -> tuple[np.ndarray, object]:
     if path.suffix == ".gz":
-        with gzip.open(path, "rb") as handle:
-            return np.frombuffer(handle.read(), dtype=np.uint8), None
+        try:
+            with gzip.open(path, "rb") as handle:
+                return np.frombuffer(handle.read(), dtype=np.uint8), None
+        except (OSError, EOFError, zlib.error) as exc:  # BadGzipFile is an OSError
+            raise LogFormatError(f"{path}: not a readable gzip file ({exc or 'truncated'})"
+                                 ) from exc
     size = path.stat().st_size
     if size == 0:
         return np.zeros(0, dtype=np.uint8), None
@@ -339,16 +435,18 @@ def parse_candump(buf: np.ndarray, source: str, skip_bad: bool = False,
         dlc = np.zeros(n_lines, dtype=np.uint8)
         data = np.zeros((n_lines, width), dtype=np.uint8)
         chan = np.zeros(n_lines, dtype=np.uint8)
+        line = np.zeros(n_lines, dtype=np.int64)
         chan_table = np.zeros((MAX_CHANNELS, 2), dtype=np.int64)
         bad = np.zeros(100, dtype=np.int64)
         fallback = np.zeros(n_lines, dtype=np.int64)
         count, n_bad, err_line, err_code, n_chan, needed = _parse(
-            buf, width, skip_bad, t, ids, flags, dlc, data, chan, chan_table, bad, fallback)
+            buf, width, skip_bad, t, ids, flags, dlc, data, chan, line, chan_table, bad,
+            fallback)
         if err_code:
-            line = bytes(_line_text(buf, err_line)).decode("utf-8", "replace")
+            text = bytes(_line_text(buf, err_line)).decode("utf-8", "replace")
             raise LogFormatError(
                 f"{source}:{err_line + shift}: {ERROR_REASONS.get(err_code, 'malformed line')}: "
-                f"{line!r} (use --skip-bad to count and skip such lines)"
+                f"{text!r} (use --skip-bad to count and skip such lines)"
             )
         if needed <= width:
             break
@@ -360,7 +458,7 @@ def parse_candump(buf: np.ndarray, source: str, skip_bad: bool = False,
             t[index] = _python_timestamp(buf, line_starts, int(fallback[index]))
     frames = Frames(t[:count], ids[:count], flags[:count], dlc[:count], data[:count],
                     chan[:count], names, source, int(n_bad),
-                    [int(x) + shift for x in bad[:min(n_bad, 100)]])
+                    [int(x) + shift for x in bad[:min(n_bad, 100)]], line[:count] + shift)
     _error_frame_fixups(frames)
     return frames
 

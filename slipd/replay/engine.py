@@ -21,7 +21,7 @@ from slipd.errors import ConfigError, LogFormatError
 from slipd.pipeline import TICK_DT, Pipeline, steps_per_tick
 from slipd.profile import Profile, load_profile
 from slipd.replay.candump import FLAG_TX, Frames
-from slipd.replay.readers import read_frames
+from slipd.replay.readers import check_time_axis, read_frames
 
 
 @dataclass
@@ -61,11 +61,9 @@ def recorded_ticks(frames: Frames, profile: Profile | None = None
     log holds no slipd output. In the recorder, file order is processing order, so a tick
     latches exactly the input lines above its SLIPD_STATE line.
     """
-    plan = Codec.output_plan(profile)
-    state_id = plan.frame_id("SLIPD_STATE")
-    outputs = {plan.frame_id(n) for n in plan.message_names}
+    state_id = Codec.output_plan(profile).frame_id("SLIPD_STATE")
     sent = (frames.flags & FLAG_TX) != 0
-    is_output = sent & np.isin(frames.frame_id, list(outputs))
+    is_output = _recorded_outputs(frames, profile)
     ticks = sent & (frames.frame_id == state_id)
     if not ticks.any():
         return None
@@ -159,14 +157,32 @@ def _channels_carrying(frames: Frames, codec: Codec, skip: set[str] = frozenset(
     return result
 
 
+def checked_log(frames: Frames, skip_bad: bool = False,
+                profile: Profile | None = None) -> Frames:
+    """``frames`` with a time axis fit to latch or play (readers.check_time_axis): in a
+    flight-recorder log only the received frames are checked, its own frames (``profile``'s
+    output IDs) carry tick times (file order is processing order there). An empty log is an
+    error: a replay of it would report success over nothing."""
+    if len(frames) == 0:
+        raise LogFormatError(f"{frames.source}: no CAN frames in it (empty"
+                             f"{', or every line skipped' if frames.bad_lines else ''})")
+    outputs = _recorded_outputs(frames, profile)
+    return check_time_axis(frames, skip_bad, None if not outputs.any() else ~outputs)
+
+
+def _recorded_outputs(frames: Frames, profile: Profile | None = None) -> np.ndarray:
+    """Mask of slipd's own output frames (marked T, on ``profile``'s output IDs) in a log."""
+    plan = Codec.output_plan(profile)
+    outputs = [plan.frame_id(n) for n in plan.message_names]
+    return ((frames.flags & FLAG_TX) != 0) & np.isin(frames.frame_id, outputs)
+
+
 def latch_log(frames: Frames, profile: Profile, tick_time: np.ndarray | None = None,
               dt: float = TICK_DT, tick_until: np.ndarray | None = None,
               bus_map: dict[str, str] | None = None) -> Inputs:
     """Decode ``frames`` and sample the latch at every tick (``tick_time`` or the grid)."""
-    if tick_until is None and len(frames) and np.any(np.diff(frames.t) < 0):
-        bad = int(np.flatnonzero(np.diff(frames.t) < 0)[0]) + 1
-        raise LogFormatError(f"{frames.source}: frame {bad + 1} goes back in time "
-                             f"({frames.t[bad]:.6f} < {frames.t[bad - 1]:.6f}); sort the log")
+    if tick_until is None:
+        check_time_axis(frames)  # raises naming the line that goes back or jumps ahead
     codec = Codec(profile)
     ticks = tick_grid(frames, dt) if tick_time is None else np.asarray(tick_time, np.float64)
     U = np.zeros((len(ticks), U_LEN))
@@ -210,7 +226,7 @@ def run_log(log_path: str | Path, profile: Profile | str, method_names: list[str
             ) -> dict[str, Estimate]:
     """Read, decode and estimate a whole log with each method in ``method_names``."""
     profile = load_profile(profile) if isinstance(profile, str) else profile
-    frames = read_frames(log_path, skip_bad=skip_bad)
+    frames = checked_log(read_frames(log_path, skip_bad=skip_bad), skip_bad, profile)
     inputs = latch_log_or_recording(frames, profile, bus_map)
     return {name: run_method(inputs, profile, name) for name in method_names}
 

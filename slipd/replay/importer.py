@@ -180,6 +180,15 @@ def read_table(path: Path, columns: set[str] | None = None,
 
 
 def _read_csv(path: Path) -> dict[str, np.ndarray]:
+    try:
+        return _parse_csv(path)
+    except UnicodeDecodeError as exc:
+        raise LogFormatError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at "
+                             f"offset {exc.start} of a read block); export the CSV as UTF-8"
+                             ) from None
+
+
+def _parse_csv(path: Path) -> dict[str, np.ndarray]:
     with open(path, newline="", encoding="utf-8-sig") as handle:
         sample = handle.read(65536)
         handle.seek(0)
@@ -209,10 +218,15 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
                     values.append(math.nan)
                     continue
                 try:
-                    values.append(float(cell))
+                    value = float(cell)
                 except ValueError:
                     raise LogFormatError(f"{path}:{line_no}: column {column!r}: {cell!r} is not "
                                          "a number (empty or NaN marks a missing value)") from None
+                if math.isinf(value):  # was dropped later with its row, unreported
+                    raise LogFormatError(f"{path}:{line_no}: column {column!r}: {cell!r} is "
+                                         "not a measurement (empty or NaN marks a missing "
+                                         "value)")
+                values.append(value)
             rows.append(values)
     data = np.array(rows, dtype=np.float64).reshape(len(rows), len(header))
     return {name: data[:, i] for i, name in enumerate(header)}

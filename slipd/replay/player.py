@@ -8,6 +8,7 @@ HDR histogram reported at the end.
 from __future__ import annotations
 
 import argparse
+import errno
 import threading
 import time
 from dataclasses import dataclass
@@ -27,6 +28,8 @@ from slipd.replay.candump import (
 )
 
 SPIN_BEFORE_DEADLINE = 200e-6  # s: sleep to here, then spin (measured: sleep alone ~70 us late)
+QUEUE_FULL_RETRY_S = 0.002  # a full transmit queue (ENOBUFS) is tried again for this long
+QUEUE_FULL = (errno.ENOBUFS, errno.EAGAIN)
 
 
 @dataclass
@@ -34,12 +37,37 @@ class PlayReport:
     frames: int
     duration: float
     lateness_us: HdrHistogram
+    dropped: int = 0  # frames not sent: the bus's transmit queue stayed full (ENOBUFS)
 
     def summary(self) -> str:
         h = self.lateness_us
+        lost = (f"; {self.dropped} frame(s) dropped, the bus's transmit queue was full"
+                if self.dropped else "")
         return (f"played {self.frames} frames in {self.duration:.2f} s; lateness us: "
                 f"p50 {h.get_value_at_percentile(50)} p99 {h.get_value_at_percentile(99)} "
-                f"max {h.get_max_value()}")
+                f"max {h.get_max_value()}{lost}")
+
+
+def _send(bus, message) -> bool:
+    """Send one frame; a full transmit queue (python-can's error_code ENOBUFS/EAGAIN, as
+    SocketCAN reports a txqueuelen overrun) is retried for QUEUE_FULL_RETRY_S, then the frame
+    counts as dropped (False). Other errors are raised."""
+    import can
+
+    give_up = None
+    while True:
+        try:
+            bus.send(message)
+            return True
+        except (can.CanOperationError, OSError) as exc:
+            code = getattr(exc, "errno", None) or getattr(exc, "error_code", None)
+            if code not in QUEUE_FULL:
+                raise
+        now = time.monotonic()
+        give_up = give_up or now + QUEUE_FULL_RETRY_S
+        if now >= give_up:
+            return False
+        time.sleep(0.0002)
 
 
 def to_messages(frames: Frames) -> list:
@@ -75,7 +103,7 @@ def play(messages: list, bus, speed: float = 1.0, loop: bool = False,
     if speed <= 0:
         raise ConfigError(f"--speed {speed}: expected a number > 0")
     lateness = HdrHistogram(1, 10_000_000, 3)
-    sent = 0
+    sent = dropped = 0
     started = time.monotonic()
     if not messages:
         return PlayReport(0, 0.0, lateness)
@@ -86,7 +114,7 @@ def play(messages: list, bus, speed: float = 1.0, loop: bool = False,
         base = started + cycle * span / speed
         for message, t in zip(messages, times, strict=True):
             if stop is not None and stop.is_set():
-                return PlayReport(sent, time.monotonic() - started, lateness)
+                return PlayReport(sent, time.monotonic() - started, lateness, dropped)
             deadline = base + (t - times[0]) / speed
             remaining = deadline - time.monotonic()
             margin = SPIN_BEFORE_DEADLINE if spin else 0.0
@@ -95,12 +123,14 @@ def play(messages: list, bus, speed: float = 1.0, loop: bool = False,
             while spin and time.monotonic() < deadline:
                 pass
             late = time.monotonic() - deadline
-            bus.send(message)
-            lateness.record_value(max(1, int(late * 1e6)))
-            sent += 1
+            if _send(bus, message):
+                sent += 1
+            else:
+                dropped += 1
+            lateness.record_value(min(max(1, int(late * 1e6)), 10_000_000))
         cycle += 1
         if not loop:
-            return PlayReport(sent, time.monotonic() - started, lateness)
+            return PlayReport(sent, time.monotonic() - started, lateness, dropped)
 
 
 def parse_map(entries: list[str]) -> dict[str, str]:
@@ -152,20 +182,33 @@ class BusRouter:
             return
         self.buses[target].send(message)
 
+    def receivers_lost(self) -> int:
+        """Frames the buses lost at their receivers since the last call (slipd_unix counts
+        a receiver whose queue was full in ``dropped``; a SocketCAN sender cannot see that)."""
+        total = sum(getattr(bus, "dropped", 0) for bus in self.buses.values())
+        lost, self._lost_reported = total - getattr(self, "_lost_reported", 0), total
+        return lost
+
     def shutdown(self) -> None:
         for bus in self.buses.values():
             bus.shutdown()
 
 
 def play_logs(args: argparse.Namespace) -> int:
-    """``slipd replay LOG --realtime``: play each log in turn onto the bus(es)."""
+    """``slipd replay LOG --realtime``: play each log in turn onto the bus(es). Every log is
+    read and checked first (malformed lines, times that go back or jump ahead), so a bad
+    one stops nothing half-played; a bus's own losses are printed at the end."""
+    from slipd.profile import load_profile
+    from slipd.replay.engine import checked_log
     from slipd.replay.readers import read_frames
 
+    profile = load_profile(args.profile) if getattr(args, "profile", None) else None
+    logs = [(log, checked_log(read_frames(log, skip_bad=args.skip_bad), args.skip_bad,
+                              profile)) for log in args.logs]
     router = BusRouter(args.interface, args.channel, parse_map(args.map),
                        fd=bool(getattr(args, "fd", False)))
     try:
-        for log in args.logs:
-            frames = read_frames(log, skip_bad=args.skip_bad)
+        for log, frames in logs:
             if frames.bad_lines:
                 print(f"{log}: skipped {frames.bad_lines} malformed line(s), first at line(s) "
                       f"{frames.bad_line_numbers[:10]}")
@@ -183,6 +226,9 @@ def play_logs(args: argparse.Namespace) -> int:
             if router.unmapped:
                 print(f"{log}: {router.unmapped} frame(s) on channels not named in --map were "
                       "not played")
+            lost = router.receivers_lost()
+            if lost:
+                print(f"{log}: the bus dropped {lost} frame(s): a receiver's queue was full")
     except KeyboardInterrupt:
         pass
     finally:

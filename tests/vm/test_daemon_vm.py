@@ -54,6 +54,8 @@ ESTIMATOR = "kinematic_heuristic"
 CORE_MESSAGES = ("IMU_ACCEL", "IMU_RATE", "WHEEL_SPEEDS", "STEERING")
 BAD_CRC_TICKS = 40  # 0.4 s of the four core messages at 100 Hz, every CRC wrong
 WRONG_DLC_FRAMES = 10
+#: frames sent to a stopped daemon: its receive queue (1 MB, ~4,000 CAN frames) overflows
+OVERFLOW_FRAMES = 30000
 ST_VALID, ST_INPUT_TIMEOUT = 1, 4
 
 STATS_PY = r'''
@@ -141,6 +143,12 @@ step stats_malformed python "$R/stats.py" $SOCK "$O/stats_malformed.json" __N_MA
 step flood cangen vcan0 -g 0 -I r -L 8 -D r -n 20000 -i
 step stats_flood python "$R/stats.py" $SOCK "$O/stats_flood.json" 0 3
 kill $DUMP
+# the daemon stopped while frames it listens to keep coming: its socket's receive queue
+# overflows, and the kernel's count of the frames it dropped must reach the stats
+kill -STOP $DAEMON
+step overflow cangen vcan0 -g 0 -I __OVERFLOW_ID__ -L 8 -D i -n __OVERFLOW_FRAMES__ -i
+kill -CONT $DAEMON
+step stats_overflow python "$R/stats.py" $SOCK "$O/stats_overflow.json" 0 3
 
 step link_down ip link set vcan0 down
 sleep 2
@@ -312,6 +320,8 @@ def story(vm_config, vm_boot, vm_run_dir) -> Story:
         ("__ESTIMATOR__", ESTIMATOR),
         ("__N_DRIVE__", str(prepared["n_drive"])),
         ("__N_MALFORMED__", str(prepared["n_malformed"])),
+        ("__OVERFLOW_ID__", f"{prepared['ids']['IMU_RATE']:03X}"),
+        ("__OVERFLOW_FRAMES__", str(OVERFLOW_FRAMES)),
     ):
         script = script.replace(key, value)
     vm = vm_boot("daemon", script, run_dir, env=env, timeout=1200)
@@ -437,6 +447,18 @@ def test_survives_a_full_rate_flood_of_random_ids(story: Story) -> None:
     )
 
 
+def test_frames_the_kernel_dropped_from_a_full_queue_are_counted(story: Story) -> None:
+    """SocketCAN drops frames silently when a socket's receive queue is full; the daemon
+    reads the count (sk_drops, what SO_RXQ_OVFL reports) and shows it."""
+    story.step_ok("overflow")
+    before, after = story.stats("flood"), story.stats("overflow")
+    dropped = after["counters"]["rx_overflows"] - before["counters"]["rx_overflows"]
+    assert 0 < dropped < OVERFLOW_FRAMES, after["counters"]
+    received = after["counters"]["rx_frames"] - before["counters"]["rx_frames"]
+    assert received + dropped <= OVERFLOW_FRAMES  # every frame either read or counted lost
+    assert any("the kernel dropped" in e for e in after["bus_events"]), after["bus_events"]
+
+
 def test_link_down_up_and_delete_recreate_recover_without_restart(story: Story) -> None:
     for name in ("link_down", "link_up", "link_delete", "link_recreate"):
         story.step_ok(name)
@@ -451,7 +473,8 @@ def test_link_down_up_and_delete_recreate_recover_without_restart(story: Story) 
         _, status, _ = state_frames(story.frames(bus_log))
         assert np.count_nonzero(status & ST_VALID) >= 10, f"no valid outputs in {bus_log}"
     final = story.stats("final")
-    assert len(final["bus_events"]) == 4, final["bus_events"]
+    link = [e for e in final["bus_events"] if " failed: " in e or "reopened after" in e]
+    assert len(link) == 4, final["bus_events"]  # (other events: silences, kernel drops)
 
 
 def test_sigterm_saves_state_and_the_restart_restores_it(story: Story) -> None:
