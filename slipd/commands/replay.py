@@ -90,6 +90,11 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     try:
         for chunk in stream:
             sinks.add(chunk, stream)
+        if stream.read.frames == 0:  # a replay of nothing must not report success
+            from slipd.replay.candump import LogFormatError
+
+            raise LogFormatError(f"{log}: no CAN frames in it (empty"
+                                 f"{', or every line skipped' if stream.read.bad_lines else ''})")
         sinks.close(stream)
     except BaseException:
         sinks.abort()

@@ -36,16 +36,23 @@ def read_frames(path: str | Path, skip_bad: bool = False) -> Frames:
                          f"{CANDUMP_SUFFIXES + LIBRARY_SUFFIXES} (optionally .gz)")
 
 
-def _read_with_python_can(path: Path) -> Frames:
+def python_can_errors() -> tuple[type[BaseException], ...]:
+    """What python-can's readers raise on a bad file (python-can imported when needed)."""
     import can
     from can.io.blf import BLFParseError
+
+    return (ValueError, OSError, EOFError, IndexError, KeyError, struct.error, zlib.error,
+            BLFParseError, can.CanError)
+
+
+def _read_with_python_can(path: Path) -> Frames:
+    import can
 
     from slipd.replay.messages import frames_from_messages
 
     try:
         frames = frames_from_messages(can.LogReader(str(path)), source=str(path))
-    except (ValueError, OSError, EOFError, IndexError, KeyError, struct.error, zlib.error,
-            BLFParseError, can.CanError) as exc:
+    except python_can_errors() as exc:
         raise LogFormatError(f"{path}: python-can cannot read it: "
                              f"{type(exc).__name__}: {exc}") from exc
     frames.line = np.arange(1, len(frames) + 1, dtype=np.int64)  # record numbers

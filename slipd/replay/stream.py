@@ -92,7 +92,8 @@ def line_blocks(path: Path, chunk_bytes: int = CHUNK_BYTES, digest=None
             try:
                 got = handle.readinto(view)
             except (OSError, EOFError, zlib.error) as exc:  # BadGzipFile is an OSError
-                raise LogFormatError(f"{path}: cannot read it ({exc or 'truncated'})") from exc
+                raise LogFormatError(f"{path}: not a readable gzip file "
+                                     f"({exc or 'truncated'})") from exc
             if digest is not None and got:
                 digest.update(view[:got])
             end = carry + got
@@ -193,16 +194,22 @@ def _python_can_chunks(path: Path, per_chunk: int) -> Iterator[Frames]:
     import can
 
     from slipd.replay.messages import frames_from_messages
+    from slipd.replay.readers import python_can_errors
 
+    records = 0
     try:
         messages = iter(can.LogReader(str(path)))
         while True:
             batch = list(itertools.islice(messages, per_chunk))
             if not batch:
                 return
-            yield frames_from_messages(batch, source=str(path))
-    except (ValueError, OSError) as exc:
-        raise LogFormatError(f"{path}: python-can cannot read it: {exc}") from exc
+            frames = frames_from_messages(batch, source=str(path))
+            frames.line = np.arange(records + 1, records + len(frames) + 1, dtype=np.int64)
+            records += len(frames)
+            yield frames
+    except python_can_errors() as exc:  # the errors the whole-log reader names too
+        raise LogFormatError(f"{path}: python-can cannot read it: "
+                             f"{type(exc).__name__}: {exc}") from exc
 
 
 def file_sha256(path: str | Path, block: int = 1 << 22) -> str:
