@@ -13,14 +13,16 @@ d_ekf and linear_kf are evaluated on another scenario of the same car and seed
 ``--start default`` (issue 18's first "done when"): the same drive is identified starting
 from the shipped default profile as it is (the simulator's vehicle 2, whatever car drove),
 and d_ekf and kinematic_heuristic are evaluated on the suite's short manoeuvres of the same
-car and sensors (EVAL_SUITE: every scenario but the identification drive itself and
-straight_offsets, which has sensor offsets of its own), pooled: beta RMS with the default
-profile, the default profile with only the identified ``[calibration]``, the identified
-profile, and the car's own parameters (mass, geometry, inertias: what identify does not
-estimate) with the identified ``[calibration]``; each as a ratio to the default profile.
+car (EVAL_SUITE: every scenario but the identification drive itself and straight_offsets,
+which has sensor offsets of its own) with the same sensors as the drive (``--sensors
+faulty``: VARIANT and SENSOR; ``nominal``: each scenario's own, so only the parameters
+differ), pooled: beta RMS with the default profile, the default profile with only the
+identified ``[calibration]``, the identified profile, and the car's own parameters (mass,
+geometry, inertias: what identify does not estimate) with the identified ``[calibration]``;
+each as a ratio to the default profile.
 
     .venv/bin/python -m benchmarks.identify [--vehicles 1,3] [--seeds 1,2] [--duration 900]
-        [--start wrong|default] [--jobs 2]
+        [--start wrong|default] [--sensors faulty|nominal] [--jobs 2]
 """
 
 from __future__ import annotations
@@ -62,6 +64,9 @@ def main() -> None:
     parser.add_argument("--start", choices=("wrong", "default"), default="wrong",
                         help="wrong: the car's profile made wrong (WRONG); default: the shipped "
                              "default profile as it is, evaluated on EVAL_SUITE")
+    parser.add_argument("--sensors", choices=("faulty", "nominal"), default="faulty",
+                        help="--start default: faulty (VARIANT and SENSOR, as --start wrong) or "
+                             "nominal (each scenario's own sensors: only the parameters differ)")
     parser.add_argument("--jobs", type=int, default=2,
                         help="processes integrating the plant (default 2)")
     args = parser.parse_args()
@@ -148,6 +153,8 @@ def main_default_start(args) -> None:
     vehicles = [int(v) for v in args.vehicles.split(",")]
     seeds = [int(s) for s in args.seeds.split(",")]
     methods = list(DEFAULT_START_METHODS)
+    sensor, variant = (SENSOR, VARIANT) if args.sensors == "faulty" else (None, None)
+    print(f"sensors: {args.sensors} (variant {variant}, overrides {sensor})")
     folder = Path(tempfile.mkdtemp(prefix="slipd-identify-default-"))
     default = load_profile("default")
     rows = []  # (vehicle, seed, profile name, {method: rms})
@@ -169,7 +176,7 @@ def main_default_start(args) -> None:
               f"evaluation scenarios integrated in {time.perf_counter() - started:.0f} s")
         _print_mismatch(vehicle)
         for seed in seeds:
-            result = sense("endurance", plant, vehicle, seed, default, SENSOR, VARIANT)
+            result = sense("endurance", plant, vehicle, seed, default, sensor, variant)
             log = folder / f"v{vehicle}_s{seed}.log"
             write_log(log, result, default)
             started = time.perf_counter()
@@ -185,7 +192,7 @@ def main_default_start(args) -> None:
                 print(f"  left: {key}: {missing.reason}")
             cases = []
             for name in eval_plants:
-                sensed = sense(name, eval_plants[name], vehicle, seed, default, SENSOR, VARIANT)
+                sensed = sense(name, eval_plants[name], vehicle, seed, default, sensor, variant)
                 case_log = folder / f"v{vehicle}_s{seed}_{name}.log"
                 case_truth = folder / f"v{vehicle}_s{seed}_{name}.truth.csv"
                 write_log(case_log, sensed, default)
