@@ -24,7 +24,6 @@ from slipd.channels import (
     Veh,
 )
 from slipd.estimators.common.filters import (
-    BUTTERWORTH_SLOTS,
     butterworth_lowpass,
     derivative_filter,
 )
@@ -133,8 +132,10 @@ class ImuMemory(enum.IntEnum):
     YAW_RATE_LOWPASS_2 = 16  # delayed alike
 
 
-#: ImuMemory slots that hold one Butterworth filter each (BUTTERWORTH_SLOTS long).
-_LOWPASS_SLOTS = (ImuMemory.AX_LOWPASS, ImuMemory.AY_LOWPASS, ImuMemory.YAW_RATE_LOWPASS)
+#: The ImuMemory slots of the three low-pass filters (ax, ay, yaw rate), [first, end): plain
+#: ints, so a kernel that resets them (kinematic_heuristic) uses the same span.
+LOWPASS_FIRST = int(ImuMemory.AX_LOWPASS)
+LOWPASS_END = int(ImuMemory.YAW_RATE_LOWPASS_2) + 1
 
 
 def reset_imu(state: np.ndarray, base: int) -> None:
@@ -148,8 +149,7 @@ def reset_imu(state: np.ndarray, base: int) -> None:
 
 def reset_accel_lowpass(state: np.ndarray, base: int) -> None:
     """The accelerometer low-pass filters of the ImuMemory block at ``base``: not started."""
-    for slot in _LOWPASS_SLOTS:
-        state[base + slot : base + slot + BUTTERWORTH_SLOTS] = np.nan
+    state[base + LOWPASS_FIRST : base + LOWPASS_END] = np.nan
 
 
 @nb.njit(cache=True, inline="always")
@@ -170,8 +170,8 @@ def imu_at_cog(state, base, u, yaw_rate_in, roll_rate, pitch_rate, dt, cutoff_hz
                                        accel_lowpass_hz)  # fmt: skip
     elif not math.isfinite(state[base + ImuMemory.AX_LOWPASS]):
         # unused filters hold 0, not "not started" (a state read back is finite everywhere)
-        for k in range(ImuMemory.AX_LOWPASS, ImuMemory.YAW_RATE_LOWPASS_2 + 1):
-            state[base + k] = 0.0
+        for k in range(base + LOWPASS_FIRST, base + LOWPASS_END):
+            state[k] = 0.0
     yaw_acc = derivative_filter(state, base + ImuMemory.D_YAW_RATE, yaw_rate, dt, cutoff_hz)
     ax_imu, ax_ok = channel(u, In.AX)
     ay_imu, ay_ok = channel(u, In.AY)

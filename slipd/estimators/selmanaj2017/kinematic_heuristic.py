@@ -123,6 +123,8 @@ from slipd.channels import (
 from slipd.estimators.common.filters import derivative_filter, gaussian_bell
 from slipd.estimators.common.inputs import (
     LEARNT_OFFSETS,
+    LOWPASS_END,
+    LOWPASS_FIRST,
     ImuMemory,
     Offsets,
     ax_offset_active,
@@ -212,8 +214,8 @@ def _reset(state, params):
         state[k] = math.nan
     state[_IMU + ImuMemory.LAST_AX] = 0.0
     state[_STEER_HELD] = 0.0
-    for k in range(_IMU + ImuMemory.AX_LOWPASS, _IMU + ImuMemory.AY_LOWPASS_2 + 1):
-        state[k] = math.nan  # the accelerometer low-pass filters restart
+    for k in range(_IMU + LOWPASS_FIRST, _IMU + LOWPASS_END):
+        state[k] = math.nan  # the ax, ay and yaw-rate low-pass filters restart
     for k in range(_DERIVATIVES[0], _DERIVATIVES[1]):
         state[k] = math.nan
     for k in range(_WHEELS, _WHEELS + _N_WHEELS):
