@@ -37,6 +37,7 @@ from slipd.identify.profile_text import write_profile
 from slipd.identify.truth import check_table, compare, truth_of, write_car_profile
 from slipd.profile import load_profile
 from slipd.sim.core import run_plan, sense
+from slipd.sim.plant import SimulationError
 from slipd.sim.scenarios import SCENARIOS
 from slipd.sim.writer import write_log, write_truth_csv
 
@@ -139,7 +140,7 @@ def _integrate(job: tuple[str, int]):
     the plant fails on this car (reported and left out of the pool, not hidden)."""
     try:
         out, parameters, _ = run_plan(*job)
-    except (ArithmeticError, ValueError) as exc:
+    except (SimulationError, ArithmeticError, ValueError) as exc:
         return f"{type(exc).__name__}: {exc}"
     return out, parameters
 
