@@ -53,10 +53,13 @@ def test_every_quantity_is_recovered_within_its_interval_and_tolerance(drives, s
     _, _, _, out = drives
     _, result, found = out[seed]
     checks = compare(found, truth_of(result, 1))
-    # the yaw inertia only where the transients support it (else left, with the reason)
+    # the yaw inertia is fitted and reported, never written (its fit is biased, see
+    # single_track.YAW_INERTIA_NOT_WRITTEN); its reason names the fitted value
     left = found.left()
     assert {c.key for c in checks} | set(left) == set(TOLERANCE), left
-    assert set(left) <= {"vehicle.yaw_inertia"}, left
+    assert set(left) == {"vehicle.yaw_inertia"}, left
+    assert "kg m^2" in left["vehicle.yaw_inertia"].reason
+    assert found.vehicle[Veh.YAW_INERTIA] == found.profile.vehicle[Veh.YAW_INERTIA]
     for c in checks:
         assert c.inside, (c, found.outcome.findings[c.key].method)
         assert c.within_tolerance, (c, TOLERANCE[c.key])
