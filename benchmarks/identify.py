@@ -1,5 +1,6 @@
-"""slipd identify on simulated drives with known truth: identified value, 95 % interval and
-the truth per quantity, for several vehicles and sensor seeds, starting from a wrong profile.
+"""slipd identify on simulated drives with known truth: identified value, 95 % interval, the
+truth and the issue's tolerance per quantity, for several vehicles and sensor seeds, starting
+from a wrong profile.
 
 Per vehicle the endurance route (cut at ``--duration`` s: town, country road, stops) is
 integrated once and sensed with each seed, with the IMU misaligned (variant
@@ -26,7 +27,7 @@ profile can reach with d_ekf); each as a ratio to the default profile, over all 
 and apart over the linear-range ones and the three at the friction limit (FRICTION_LIMIT).
 Before: each car's default, identified and plant values of what d_ekf reads.
 
-    .venv/bin/python -m benchmarks.identify [--vehicles 1,3] [--seeds 1,2] [--duration 900]
+    .venv/bin/python -m benchmarks.identify [--vehicles 1,2,3] [--seeds 1,2] [--duration 900]
         [--start wrong|default] [--sensors faulty|nominal] [--jobs 2]
 """
 
@@ -78,7 +79,7 @@ GROUPS = {"all": None, "linear": tuple(n for n in EVAL_SUITE if n not in FRICTIO
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--vehicles", default="1,3")
+    parser.add_argument("--vehicles", default="1,2,3")
     parser.add_argument("--seeds", default="1,2")
     parser.add_argument("--duration", type=float, default=900.0)
     parser.add_argument("--no-eval", action="store_true")
