@@ -18,7 +18,7 @@ from slipd.cli import main
 from slipd.errors import ConfigError
 from slipd.identify import identify, parse_only
 from slipd.identify.profile_text import write_profile
-from slipd.identify.truth import compare, truth_of, write_car_profile
+from slipd.identify.truth import TOLERANCE, compare, truth_of, write_car_profile
 from slipd.profile import load_profile
 
 WRONG = {"vehicle.steering_ratio": 1.15, "vehicle.tyre.cornering_stiffness_front": 0.7,
@@ -27,22 +27,6 @@ WRONG = {"vehicle.steering_ratio": 1.15, "vehicle.tyre.cornering_stiffness_front
 VARIANT = "misalignment,steer_offset"
 SENSOR = {"wheel_radius_bias": (0.01, -0.005, 0.0, 0.008)}
 SEEDS = (1, 2)
-#: key -> the largest |error| allowed (absolute in the key's unit, or relative with "%"), the
-#: issue's tolerances: offsets 0.02 m/s^2 / 0.05 deg/s, misalignment 0.3 deg, steering ratio
-#: 2 %, cornering stiffness 10 % (outside the truth's band); the rest as measured on
-#: vehicles 1-3 (benchmarks/identify.py) with a margin.
-TOLERANCE = {
-    "calibration.gyro_offset": 0.05,
-    "calibration.accel_offset": 0.02,
-    "calibration.imu_mounting_deg": 0.3,
-    "calibration.wheel_radius_scale": 0.002,
-    "calibration.steer_offset_deg": 0.2,  # deg at the steering wheel (issue: 20 %)
-    "vehicle.steering_ratio": "2%",
-    "vehicle.tyre.cornering_stiffness_front": "10%",
-    "vehicle.tyre.cornering_stiffness_rear": "10%",
-    "vehicle.roll_stiffness": "15%",
-    "vehicle.yaw_inertia": "25%",
-}
 
 
 @pytest.fixture(scope="module")
@@ -69,17 +53,16 @@ def test_every_quantity_is_recovered_within_its_interval_and_tolerance(drives, s
     _, _, _, out = drives
     _, result, found = out[seed]
     checks = compare(found, truth_of(result, 1))
-    # the yaw inertia only where the transients support it (else left, with the reason)
+    # the yaw inertia is fitted and reported, never written (its fit is biased, see
+    # single_track.YAW_INERTIA_NOT_WRITTEN); its reason names the fitted value
     left = found.left()
     assert {c.key for c in checks} | set(left) == set(TOLERANCE), left
-    assert set(left) <= {"vehicle.yaw_inertia"}, left
+    assert set(left) == {"vehicle.yaw_inertia"}, left
+    assert "kg m^2" in left["vehicle.yaw_inertia"].reason
+    assert found.vehicle[Veh.YAW_INERTIA] == found.profile.vehicle[Veh.YAW_INERTIA]
     for c in checks:
         assert c.inside, (c, found.outcome.findings[c.key].method)
-        tolerance = TOLERANCE[c.key]
-        if isinstance(tolerance, str):
-            assert abs(c.relative_error) <= float(tolerance[:-1]) / 100, c
-        else:
-            assert abs(c.error) <= tolerance, c
+        assert c.within_tolerance, (c, TOLERANCE[c.key])
 
 
 def test_the_wrong_profile_is_corrected_in_the_written_copy(drives, tmp_path):

@@ -119,6 +119,18 @@ def test_snow_drift_exceeds_10_deg():
     assert np.all(res.truth["vx"] > 0.0)
 
 
+def test_plant_reports_where_the_integrator_gives_up():
+    """snow_drift on the front-driven vehicle 1: its throttle holds the rear wheels' slip, which
+    a front-driven car never builds, so the fronts spin up until LSODA gives up (~23.6 s). The
+    zeros odeint leaves after the failure must not reach the model (they raised
+    ZeroDivisionError in the RHS, a traceback from `slipd sim snow_drift --vehicle 1`)."""
+    from slipd.sim.core import run_plan
+    from slipd.sim.plant import SimulationError
+
+    with pytest.raises(SimulationError, match=r"could not be integrated past t = 2\d\.\d\d s"):
+        run_plan("snow_drift", 1)
+
+
 def test_standstill_sensors_read_gravity_and_zero_speed():
     """A parked car: az = +g, wheel speeds exactly 0, gyros only their bias and noise."""
     moving = _synthetic(10)

@@ -12,8 +12,9 @@ identifiable, in an order where each step uses what the earlier ones found:
 3. steering-wheel offset, steering ratio and understeer gradient (slipd.identify.steering:
    the steady-state handling diagram);
 4. roll stiffness from the roll gradient, where a roll rate exists (slipd.identify.roll);
-5. axle cornering stiffnesses and, where the transients support it, the yaw inertia
-   (slipd.identify.single_track: output-error fit of the linear single-track model).
+5. axle cornering stiffnesses (slipd.identify.single_track: output-error fit of the linear
+   single-track model); the yaw inertia is fitted with them and reported, not written (the
+   fit is biased, see slipd.identify.single_track.YAW_INERTIA_NOT_WRITTEN).
 
 Every value comes with its method, the data it used and a 95 % interval
 (slipd.identify.results); a quantity the data cannot support is left as it was, with the
@@ -170,8 +171,6 @@ def identify_drives(drives: list[Drive], base: Profile, only: set[str] | None = 
                            ("cornering_stiffness_rear", Veh.CORNERING_STIFFNESS_R)):
             if key in cornering:
                 vehicle[index] = cornering[key]
-    if "yaw_inertia" in wanted and "yaw_inertia" in cornering:
-        vehicle[Veh.YAW_INERTIA] = cornering["yaw_inertia"]
     return Identification(base, wanted, outcome, drives, sigs, cal, vehicle)
 
 

@@ -21,8 +21,10 @@ identified roll gradient; a road's bank moves the car but is not in the accelero
 only adds noise). m, l_f and l_r come from the profile (a scale's axle loads): with a wrong
 mass the stiffnesses come out in proportion, which is what the profile's model needs.
 
-The yaw inertia is fitted along with them and kept only where its 95 % interval is narrower
-than +-25 %; otherwise the profile's value is kept and the stiffnesses refitted with it.
+The yaw inertia is fitted along with them and reported (value and 95 % interval in the
+reason it is left) but never written: on simulated cars with a known I_z that fit is biased
+by +9..+51 %, on vehicle 2 beyond its interval (:data:`YAW_INERTIA_NOT_WRITTEN`); the
+stiffnesses are fitted with the profile's inertia.
 
 Discretisation: trapezoidal rule (A-stable at the low speeds where the model is stiff), one
 step per tick; :func:`simulate_segments` is the numba kernel, :func:`simulate_segments_plain`
@@ -57,7 +59,20 @@ MIN_SEGMENT_S = 6.0
 BURN_IN_S = 1.5  # s at each segment's start not scored (the state settles from its guess)
 DECIMATE = 4  # score every 4th tick (25 Hz: above the 1-2 Hz of the yaw dynamics)
 MIN_YAW_RATE_STD = math.radians(1.0)  # rad/s: a segment that never turns carries nothing
-YAW_INERTIA_MAX_REL_HALF_WIDTH = 0.25
+#: Why the fitted yaw inertia is reported, never written. Measured (benchmarks/identify.py,
+#: 900 s endurance drives, seeds 1 and 2): with the car's own mass and geometry the fit gives
+#: 1808-1838 kg m^2 on vehicle 1 (plant 1539, +17..+19 %), 2362-2469 on vehicle 2 (1792,
+#: +32..+38 %, its bootstrap interval excluding the truth) and 2698-2703 on vehicle 3 (2473,
+#: +9 %); from the default profile (mass 1093 kg) 2043-2076 on vehicle 1 and 2031-2032 on
+#: vehicle 3, where the plant's I_z / m at that mass is 1372 and 1828 (+49..+51 %, +11 %).
+#: The bias is model error, not noise (more segments do not remove it): the multi-body plant's
+#: roll and load-transfer transients, which the two-state model lacks, are fitted as yaw
+#: inertia. On vehicle 2 from the default profile, d_ekf's beta RMS pooled over the suite was
+#: 1.155 / 1.152 deg (seeds 1 / 2) with the fitted inertia and its stiffnesses written,
+#: 1.099 / 1.106 with the profile's inertia and the stiffnesses fitted with it.
+YAW_INERTIA_NOT_WRITTEN = ("the two-state model's fitted inertia is biased by the roll and "
+                           "load-transfer transients it lacks (+9..+51 % on simulated cars "
+                           "with known I_z, on vehicle 2 outside its interval)")
 N_BOOTSTRAP_FIT = 60
 
 
@@ -231,7 +246,8 @@ def _solve(data: FitData, idx: np.ndarray, start: np.ndarray, fixed: dict[int, f
 
 def identify_cornering(sigs: list[Signals], profile, roll_gradient: float, yaw_offset: float,
                        outcome: Outcome, fit_inertia: bool = True) -> dict:
-    """Cornering stiffnesses (and yaw inertia) into ``outcome``; returns the values found."""
+    """Cornering stiffnesses into ``outcome`` (the yaw inertia's fit, with ``fit_inertia``, only
+    in the reason it is left); returns the values found."""
     data = fit_data(sigs, roll_gradient, yaw_offset)
     keys = ("vehicle.tyre.cornering_stiffness_front", "vehicle.tyre.cornering_stiffness_rear")
     if data is None:
@@ -255,31 +271,27 @@ def identify_cornering(sigs: list[Signals], profile, roll_gradient: float, yaw_o
     if estimate is not None and n >= MIN_BOOTSTRAP_SEGMENTS:
         samples = bootstrap(lambda idx: _solve(data, idx, estimate, {}, vehicle_part), n,
                             n=N_BOOTSTRAP_FIT)
-    inertia_ok = False
     if estimate is not None and len(samples):
         lo, hi = np.percentile(samples[:, 2], [2.5, 97.5])
-        inertia_ok = (hi - lo) / 2 < YAW_INERTIA_MAX_REL_HALF_WIDTH * estimate[2]
-        inertia_ci = (float(lo), float(hi))
-    if inertia_ok:
-        intervals = percentile_interval(samples)
-        found["yaw_inertia"] = float(estimate[2])
-        outcome.add(Finding("vehicle.yaw_inertia", float(estimate[2]), inertia_ci,
-                            f"fitted with the stiffnesses, bootstrap over {n} segments "
-                            f"({len(samples)} resamples)", SOURCE, n, seconds, logs,
-                            note="with the profile's mass and axle distances"))
+        why = (f"fitted {estimate[2]:.0f} kg m^2 (95 % CI {lo:.0f}..{hi:.0f}) but not written: "
+               f"{YAW_INERTIA_NOT_WRITTEN}")
+    elif estimate is not None:
+        why = f"fitted {estimate[2]:.0f} kg m^2 on too few segments for an interval"
     else:
-        why = ("its 95 % interval is wider than +-25 % (the transients do not support it)"
-               if estimate is not None and len(samples) else "too few segments")
-        outcome.add(Missing("vehicle.yaw_inertia", f"yaw inertia kept: {why}"))
-        fixed = {2: float(veh[Veh.YAW_INERTIA])}
-        estimate = _solve(data, all_idx, start, fixed, vehicle_part)
-        if n >= MIN_BOOTSTRAP_SEGMENTS:
-            samples = bootstrap(lambda idx: _solve(data, idx, estimate, fixed, vehicle_part),
-                                n, n=N_BOOTSTRAP_FIT)
-            intervals = percentile_interval(samples[:, :2]) if len(samples) else \
-                [(math.nan, math.nan)] * 2
-        else:
-            intervals = [(math.nan, math.nan)] * 2
+        why = "not asked for"
+    outcome.add(Missing("vehicle.yaw_inertia", f"yaw inertia kept: {why}"))
+    outcome.diagnostics["yaw_inertia_fit"] = (
+        None if estimate is None else (float(estimate[2]), samples[:, 2] if len(samples) else
+                                       np.zeros(0)))
+    fixed = {2: float(veh[Veh.YAW_INERTIA])}
+    estimate = _solve(data, all_idx, start, fixed, vehicle_part)
+    if n >= MIN_BOOTSTRAP_SEGMENTS:
+        samples = bootstrap(lambda idx: _solve(data, idx, estimate, fixed, vehicle_part),
+                            n, n=N_BOOTSTRAP_FIT)
+        intervals = percentile_interval(samples[:, :2]) if len(samples) else \
+            [(math.nan, math.nan)] * 2
+    else:
+        intervals = [(math.nan, math.nan)] * 2
     method = (f"least squares (soft L1), bootstrap over {n} segments" if n >=
               MIN_BOOTSTRAP_SEGMENTS else f"least squares, only {n} segments: no interval")
     for i, key in enumerate(keys):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -35,6 +36,9 @@ G = 9.81  # m/s^2, the value vehicle_dynamics_mb uses
 class SimulationError(SlipdError):
     """The plant cannot continue (the scenario drove the car out of the model's domain)."""
 
+
+#: scipy's odeint message of a successful call (full_output); anything else is LSODA giving up.
+ODEINT_OK = "Integration successful."
 
 #: Number of states of vehicle_dynamics_mb.
 N_MB = 29
@@ -345,7 +349,7 @@ class Plant:
         carried across segments so long drives need no more memory than their output.
         """
         try:
-            from scipy.integrate import odeint
+            from scipy.integrate import ODEintWarning, odeint
         except ImportError as exc:  # pragma: no cover
             raise DependencyError("the simulator needs scipy: pip install slipd[sim]") from exc
         n = int(round(duration / dt)) + 1
@@ -357,10 +361,12 @@ class Plant:
         while k < n - 1:
             k_end = min(n - 1, k + per_seg)
             try:
-                sol = odeint(
-                    self.rhs, y[k], t[k : k_end + 1], tfirst=True, hmax=dt,
-                    rtol=1e-4, atol=1e-6, mxstep=5000,
-                )
+                with warnings.catch_warnings():  # its failure is raised below, with the time
+                    warnings.simplefilter("ignore", ODEintWarning)
+                    sol, info = odeint(
+                        self.rhs, y[k], t[k : k_end + 1], tfirst=True, hmax=dt,
+                        rtol=1e-4, atol=1e-6, mxstep=5000, full_output=True,
+                    )
             except ZeroDivisionError as exc:
                 # the model divides by wheel-centre speeds: a car going backwards or spinning
                 # has left the model's domain, the scenario must not ask for it
@@ -368,6 +374,20 @@ class Plant:
                     f"the car left the multi-body model's domain (spin or reversing) between "
                     f"t = {t[k]:.2f} and {t[k_end]:.2f} s"
                 ) from exc
+            if info["message"] != ODEINT_OK:
+                # LSODA gave up (istate < 0) and fills the rest of the segment with zeros, a
+                # standing car the model then divides by: report where, never return them
+                # (the per-output arrays past the failure are uninitialised memory: an output
+                # was reached where LSODA's time lies within one step after it)
+                reached = info["tcur"] - t[k + 1 : k_end + 1]
+                done = int(np.argmin((reached >= -1e-9) & (reached <= dt + 1e-9)))
+                raise SimulationError(
+                    f"the multi-body model could not be integrated past t = {t[k + done]:.2f} "
+                    f"s (scipy odeint: {info['message'].strip()}); there vx = "
+                    f"{sol[done][VX]:.1f} m/s, yaw rate {sol[done][YAW_RATE]:.2f} rad/s: the "
+                    f"scenario drove the car out of the model's domain (e.g. a drift asked of a "
+                    f"car whose driven axle cannot hold one)"
+                )
             y[k + 1 : k_end + 1] = sol[1:]
             k = k_end
             if progress is not None:
