@@ -370,3 +370,29 @@ def test_fast_and_package_plants_agree_on_a_manoeuvre():
     b = Plant(vehicle_parameters(2), road, driver, fast=False).run(1.5, 15.0)
     np.testing.assert_allclose(a.x[:, YAW_RATE], b.x[:, YAW_RATE], atol=1e-6)
     np.testing.assert_allclose(a.x[:, VY], b.x[:, VY], atol=1e-6)
+
+
+def test_a_suite_scenario_the_plant_cannot_run_is_reported_and_the_rest_written(
+        tmp_path, monkeypatch, capsys):
+    """`slipd sim --suite --vehicle 1`: snow_drift's rear-slip throttle on the front-driven car
+    makes LSODA give up; the suite writes every other scenario, names the one it could not
+    simulate with the plant's reason, and exits 1 (it used to stop at it)."""
+    import slipd.sim as sim_package
+    from slipd.commands import sim as sim_command
+    from slipd.sim.plant import SimulationError
+
+    picked = {name: SCENARIOS[name] for name in ("step_steer", "snow_drift")}
+    monkeypatch.setattr(sim_package, "SCENARIOS", picked)
+
+    def fake(scenario, outputs, *args, **kwargs):
+        if scenario == "snow_drift":
+            raise SimulationError("the multi-body model could not be integrated past t = 23.56 s")
+        return [{"scenario": scenario, "variant": None, "duration": 6.0, "frames": 10,
+                 "wall": 0.1}]
+
+    monkeypatch.setattr(sim_command, "simulate_variants_to_files", fake)
+    assert sim_command.run_suite(tmp_path, 1, 0, "default", jobs=1) == 1
+    captured = capsys.readouterr()
+    assert "step_steer" in captured.out and "suite: 1 of 2 scenarios" in captured.out
+    assert "snow_drift on vehicle 1 not simulated" in captured.err
+    assert "integrated past t = 23.56 s" in captured.err
