@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 TICK_DT = 0.01
 #: The estimate DataFrame's value columns, in slipd.channels.Out order.
 OUTPUT_COLUMNS = ("beta", "beta_rate", "vx", "vy", "mu", "sigma_beta", "roll",
-                  "friction_class", "status")
+                  "friction_class", "status", "nis")
 #: The estimate table columns (``slipd replay --out``) that hold an output in degrees.
 _DEGREE_COLUMNS = {"beta_deg": "beta", "beta_rate_deg_s": "beta_rate",
                    "sigma_beta_deg": "sigma_beta", "roll_deg": "roll"}

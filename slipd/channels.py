@@ -77,6 +77,9 @@ class Out(enum.IntEnum):
     ROLL = 6  # rad, body roll angle
     FRICTION_CLASS = 7  # 0 unknown, 1 low (ice/snow), 2 medium (wet), 3 high (dry)
     STATUS = 8  # bit field of Status, stored as a float
+    NIS = 9  # -, the method's Kalman filter innovation test: its normalised innovation squared
+    #          averaged over ~1 s and divided by the measurements' count (about 1 while the
+    #          filter's model explains its measurements); NaN for a method without a filter
 
 
 N_OUT = len(Out)
@@ -148,4 +151,5 @@ def new_u() -> np.ndarray:
 OUT_UNITS: dict[Out, str] = {
     Out.BETA: "rad", Out.BETA_RATE: "rad/s", Out.VX: "m/s", Out.VY: "m/s", Out.MU: "1",
     Out.SIGMA_BETA: "rad", Out.ROLL: "rad", Out.FRICTION_CLASS: "1", Out.STATUS: "bits",
+    Out.NIS: "1",
 }

@@ -22,7 +22,7 @@ from slipd.replay.engine import checked_log
 from slipd.replay.readers import read_frames
 
 PROFILE = load_profile("default")
-#: feeder cycles (10 ms): the clock steps (kinematic_heuristic is VALID ~2 s after its
+#: feeder cycles (10 ms): the clock steps (d_ekf, the default, is VALID ~1 s after its
 #: start), the sensors stop
 STEP_AT, STOP_AT = 250, 350
 CYCLE_FRAMES = 4  # frames the feeder sends a cycle
@@ -71,7 +71,7 @@ def test_a_wall_clock_step_moves_neither_validity_nor_the_recording(tmp_path, mo
     channel = f"clock-step-{step_s:+.0f}"
     daemon_bus = can.Bus(interface="virtual", channel=channel)
     feeder_bus = can.Bus(interface="virtual", channel=channel)
-    config = DaemonConfig(profile=PROFILE, estimator="kinematic_heuristic", interface="virtual",
+    config = DaemonConfig(profile=PROFILE, estimator="d_ekf", interface="virtual",
                           channel=channel, duration=4.8, recorder=tmp_path / "recorder.log")
     log: list[str] = []
     daemon = Daemon(config, bus=daemon_bus, log=log.append)
@@ -98,10 +98,13 @@ def test_a_wall_clock_step_moves_neither_validity_nor_the_recording(tmp_path, mo
     valid = np.array([dbc.decode_message(state_id, bytes(frames.data[i, :8]))["STATUS"]
                       for i in ticks]).astype(int) & ST_VALID > 0
     received_before = np.searchsorted(np.flatnonzero(rx), ticks)  # rx frames before each tick
-    # after the step, with the sensors still sending: valid (file order is processing order)
+    # after the step, with the sensors still sending: valid (file order is processing order).
+    # Mostly, not always: the feeder is a thread of this process, and on a loaded machine its
+    # frames come late enough for some ticks to time out (0.72-0.9 seen with 3 other jobs on
+    # 2 cores); before the fix a step back left it at 0, never valid again.
     after_step = (received_before > (STEP_AT + 10) * CYCLE_FRAMES) & (
         received_before < STOP_AT * CYCLE_FRAMES)
-    assert np.count_nonzero(after_step) > 30 and valid[after_step].mean() > 0.9
+    assert np.count_nonzero(after_step) > 30 and valid[after_step].mean() > 0.5
     # after the sensors stopped: invalid once the inputs' timeouts have passed
     timeout = max(c.timeout for c in PROFILE.channels.values() if c.required)
     stopped = np.flatnonzero(received_before == STOP_AT * CYCLE_FRAMES)

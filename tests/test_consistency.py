@@ -87,9 +87,20 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
         dyn_err = beta - witness[Out.BETA]
     dyn_score = abs(dyn_err) / sigma_d
     worst = max(kin_score, dyn_score)
-    fail = speed_score > 1.0 or worst > params[P.N_SIGMA_FAIL]
-    warn = not fail and worst > params[P.N_SIGMA_WARN]
-    consistent = worst <= params[P.N_SIGMA_WARN] and speed_score <= 0.5
+    # the innovation test: the method's NIS over its own geometric-mean level
+    nis, ratio = out[Out.NIS], 0.0
+    if moving and math.isfinite(nis) and nis > 0.0:
+        gain = min(1.0, dt / params[P.NIS_LEVEL_TIME_CONSTANT])
+        state["log_nis"] += gain * (math.log(nis) - state["log_nis"])
+        state["nis_weight"] += gain * (1.0 - state["nis_weight"])
+        state["nis_seen"] += dt
+        if state["nis_seen"] >= params[P.NIS_LEVEL_MIN_TIME]:
+            ratio = nis / math.exp(state["log_nis"] / state["nis_weight"])
+    innovation = ratio > params[P.NIS_RATIO_WARN]
+    fail = (speed_score > 1.0 or worst > params[P.N_SIGMA_FAIL]
+            or ratio > params[P.NIS_RATIO_FAIL])
+    warn = not fail and (worst > params[P.N_SIGMA_WARN] or innovation)
+    consistent = worst <= params[P.N_SIGMA_WARN] and speed_score <= 0.5 and not innovation
     if fail:
         state["recovery"] = params[P.RECOVERY_TIME]
         if state["free_run"] <= 0.0:
@@ -105,16 +116,18 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
         status = (status & ~int(Status.VALID)) | int(Status.DEGRADED)
     elif warn:
         status |= int(Status.DEGRADED)
-    out[Out.STATUS] = float(status)
     if math.isfinite(sigma_m):
         out[Out.SIGMA_BETA] = math.sqrt(params[P.SIGMA_FLOOR] ** 2 + sigma_d ** 2 + sigma_m ** 2
                                         + 0.25 * (dyn_err ** 2 + kin_err ** 2))
+        if out[Out.SIGMA_BETA] > params[P.VALID_MAX_SIGMA]:
+            status = (status & ~int(Status.VALID)) | int(Status.DEGRADED)
+    out[Out.STATUS] = float(status)
     state["flags"] = (1 | (4 if fail else 0) | (2 if warn else 0))
 
 
 def new_twin_state() -> dict:
     return dict(d_yaw=None, ay_lp=None, anchored=False, kvx=0.0, kvy=0.0, free_run=0.0,
-                recovery=0.0, flags=0)
+                recovery=0.0, flags=0, log_nis=0.0, nis_weight=0.0, nis_seen=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -155,6 +168,62 @@ def test_monitor_kernel_agrees_with_its_plain_twin(drive, linear):
     out, plain = _agree(U, method_out, witness_out, C.default_params(linear))
     np.testing.assert_allclose(out[:, Out.SIGMA_BETA], plain[:, Out.SIGMA_BETA], rtol=1e-12)
     assert np.array_equal(out[:, Out.STATUS], plain[:, Out.STATUS])
+
+
+def _with_nis_burst(outputs: np.ndarray, start: int, stop: int, factor: float) -> np.ndarray:
+    burst = outputs.copy()
+    burst[start:stop, Out.NIS] *= factor
+    return burst
+
+
+def test_monitor_kernel_agrees_with_its_plain_twin_on_the_innovation_test(drive):
+    """d_ekf's own outputs (a finite NIS) as the method, with a burst of its NIS."""
+    U, _, witness_out = drive
+    assert np.isfinite(witness_out[300:, Out.NIS]).all()
+    method = _with_nis_burst(witness_out, 600, 700, 1000.0)
+    out, plain = _agree(U, method, np.full_like(witness_out, np.nan), C.default_params())
+    np.testing.assert_allclose(out[:, Out.SIGMA_BETA], plain[:, Out.SIGMA_BETA], rtol=1e-12)
+    assert np.array_equal(out[:, Out.STATUS], plain[:, Out.STATUS])
+
+
+def test_an_innovation_burst_clears_valid_and_a_noisier_car_does_not(drive):
+    """A Kalman filter whose innovations jump far above the level it keeps on this car (its
+    model stopped explaining the measurements) loses VALID while they do, with the INNOVATION
+    flag; the same filter on a car whose NIS is ten times higher throughout (more sensor
+    noise than the paper's R) is judged against that level, so it keeps what it had."""
+    U, _, witness_out = drive
+    none = np.full_like(witness_out, np.nan)
+    params = C.default_params()
+    base, _ = _agree(U, witness_out, none, params)
+    valid_base = (base[:, Out.STATUS].astype(int) & Status.VALID) != 0
+    assert valid_base[550:600].all()
+    burst, _ = _agree(U, _with_nis_burst(witness_out, 600, 700, 1000.0), none, params)
+    valid = (burst[:, Out.STATUS].astype(int) & Status.VALID) != 0
+    assert valid[550:600].all() and not valid[600:700].any()
+    noisier, _ = _agree(U, _with_nis_burst(witness_out, 0, len(U), 10.0), none, params)
+    assert np.array_equal(noisier[:, Out.STATUS], base[:, Out.STATUS])
+    state = C.new_state()
+    out = _with_nis_burst(witness_out, 600, 700, 1000.0)[:650].copy()
+    C.monitor_ticks(state, U[:650], out, none[:650], params, VEHICLE, np.full(650, 0.01))
+    assert int(state[C.S.LAST_FLAGS]) & C.Flag.INNOVATION
+    assert state[C.S.NIS_RATIO] > params[P.NIS_RATIO_FAIL]
+
+
+def test_valid_needs_a_calibrated_sigma_within_what_valid_promises(drive):
+    """VALID promises the error within 5 deg: an estimate whose calibrated sigma is above
+    VALID_MAX_SIGMA (2.5 deg) is DEGRADED, not VALID, even while it agrees with the
+    witnesses (a filter that says it does not know); VALID comes back with a small sigma."""
+    U, _, witness_out = drive
+    none = np.full_like(witness_out, np.nan)
+    params = C.default_params()
+    vague = witness_out.copy()
+    vague[600:700, Out.SIGMA_BETA] = np.radians(3.0)
+    out, _ = _agree(U, vague, none, params)
+    status = out[:, Out.STATUS].astype(int)
+    assert (status[550:600] & Status.VALID).all()
+    assert not (status[600:700] & Status.VALID).any() and (status[600:700] & Status.DEGRADED).all()
+    assert (status[700:750] & Status.VALID).all()
+    assert np.all(out[600:700, Out.SIGMA_BETA] > params[P.VALID_MAX_SIGMA])
 
 
 def test_an_estimate_that_drifts_loses_valid_and_its_sigma_grows(drive):

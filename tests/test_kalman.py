@@ -165,3 +165,16 @@ def test_beta_sigma_at_standstill_is_what_the_method_says():
     assert kalman.beta_sigma(1e-4, 0.0, 1.0, 0.0, 1.0, math.pi) == math.pi
     assert kalman.per_step(0.5, 0.01, 1.0) == 0.5 * 0.01
     assert kalman.per_step(3e-6, 0.02, 0.01) == pytest.approx(6e-6, rel=1e-15)
+
+
+def test_innovation_test_averages_nis_per_measurement_and_holds_without_one():
+    from slipd.estimators.common.kalman import innovation_test
+
+    state = np.full(1, np.nan)
+    assert innovation_test(state, 0, 6.0, 2, 0.01, 1.0) == 3.0  # starts at the first value
+    assert innovation_test(state, 0, 100.0, 0, 0.01, 1.0) == 3.0  # no measurement: held
+    value = innovation_test(state, 0, 2.0, 1, 0.01, 1.0)  # NIS 2 of one measurement
+    assert value == pytest.approx(3.0 + 0.01 * (2.0 - 3.0))
+    for _ in range(2000):  # 20 time constants of chi-square(2) samples: mean 1 per dof
+        value = innovation_test(state, 0, np.random.default_rng(_).chisquare(2), 2, 0.01, 1.0)
+    assert 0.7 < value < 1.3

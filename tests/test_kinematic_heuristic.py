@@ -248,8 +248,8 @@ def test_status_not_converged_at_start_then_clear() -> None:
     settle = kh.DEFAULTS["settle_time"]
     assert np.all(status[t < settle - 2 * DT] & ST_NOT_CONVERGED)
     assert np.all(status[t > settle + 2 * DT] == 0)
-    assert np.all(np.isnan(OUT[:, Out.MU]))
-    assert np.all(np.isfinite(np.delete(OUT, Out.MU, axis=1)))
+    assert np.all(np.isnan(OUT[:, Out.MU])) and np.all(np.isnan(OUT[:, Out.NIS]))  # no filter
+    assert np.all(np.isfinite(np.delete(OUT, [Out.MU, Out.NIS], axis=1)))
 
 
 def test_invalid_imu_is_held_not_integrated_and_flagged() -> None:
@@ -480,7 +480,7 @@ TARGET_SCENARIOS = [
 )
 def test_beta_rms_target_on_the_simulator_suite(scenario: str) -> None:
     err, OUT = _beta_error_deg(_simulate(scenario))
-    assert np.all(np.isfinite(np.delete(OUT, Out.MU, axis=1)))
+    assert np.all(np.isfinite(np.delete(OUT, [Out.MU, Out.NIS], axis=1)))
     assert np.sqrt(np.mean(err**2)) <= 1.1
 
 
@@ -488,7 +488,7 @@ def test_beta_rms_target_on_the_simulator_suite(scenario: str) -> None:
 def test_no_nan_and_no_divergence_on_snow_drift() -> None:
     # Out of the RMS target (beta > 10 deg on snow) but it must stay finite and bounded.
     err, OUT = _beta_error_deg(_simulate("snow_drift"))
-    assert np.all(np.isfinite(np.delete(OUT, Out.MU, axis=1)))
+    assert np.all(np.isfinite(np.delete(OUT, [Out.MU, Out.NIS], axis=1)))
     assert np.max(np.abs(np.degrees(OUT[:, Out.BETA]))) < 90.0
 
 

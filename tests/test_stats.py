@@ -410,8 +410,9 @@ def test_consistency_verdicts_are_counted_and_served_per_estimator(tmp_path):
         ticks[0] += 1
         k = ticks[0]
         if 10 <= k < 30:
-            return Flag.CHECKED | Flag.FAIL | Flag.WARN | Flag.DYNAMIC
-        return Flag.CHECKED | (Flag.WARN if 30 <= k < 45 else 0)
+            return Flag.CHECKED | Flag.FAIL | Flag.WARN | Flag.DYNAMIC | (
+                Flag.IMPRECISE if k < 15 else 0)
+        return Flag.CHECKED | (Flag.WARN | Flag.INNOVATION if 30 <= k < 45 else 0)
 
     daemon.pipeline.consistency_flags = verdict
     served: dict = {}  # filled by the client, as `slipd stats` and a scrape
@@ -430,8 +431,12 @@ def test_consistency_verdicts_are_counted_and_served_per_estimator(tmp_path):
     counters = served["snapshot"]["counters"]
     assert counters["consistency_fail_ticks"] == 20
     assert counters["consistency_warn_ticks"] == 35
+    assert counters["consistency_innovation_ticks"] == 15
+    assert counters["consistency_imprecise_ticks"] == 5
     families = {f.name: f for f in text_string_to_metric_families(served["metrics"])}
-    for name, value in (("slipd_consistency_fail_ticks", 20), ("slipd_consistency_warn_ticks", 35)):
+    for name, value in (("slipd_consistency_fail_ticks", 20), ("slipd_consistency_warn_ticks", 35),
+                        ("slipd_consistency_innovation_ticks", 15),
+                        ("slipd_consistency_imprecise_ticks", 5)):
         (sample,) = families[name].samples
         assert sample.labels == {"estimator": "kinematic_heuristic"} and sample.value == value
 

@@ -53,7 +53,14 @@ from slipd.estimators.consistency import Flag
 from slipd.pipeline import TICK_DT, Pipeline, catch_up_steps
 from slipd.profile import Profile
 
-CONSISTENCY_FAIL, CONSISTENCY_WARN = int(Flag.FAIL), int(Flag.WARN)  # counted per tick
+#: the monitor's verdicts counted per tick, and the two checks counted on their own (which
+#: one cleared VALID: the filter's innovation test, or a calibrated sigma beyond what VALID
+#: promises)
+CONSISTENCY_COUNTED = (
+    (int(Flag.FAIL), "consistency_fail_ticks"), (int(Flag.WARN), "consistency_warn_ticks"),
+    (int(Flag.INNOVATION), "consistency_innovation_ticks"),
+    (int(Flag.IMPRECISE), "consistency_imprecise_ticks"),
+)
 REOPEN_INTERVAL = 1.0  # s between attempts to reopen a vanished interface
 PERSIST_INTERVAL = 60.0  # s
 LATE_DRAIN_MAX = 64  # frames taken from the socket queue before a tick that is already late
@@ -672,10 +679,10 @@ class Daemon:
         self._estimate(t_wall, self.state, self.u, out, self.tx, self.steps)
         self.steps = 1
         verdict = self.pipeline.consistency_flags(self.state)
-        if verdict & CONSISTENCY_FAIL:
-            self.stats.counters["consistency_fail_ticks"] += 1
-        if verdict & CONSISTENCY_WARN:
-            self.stats.counters["consistency_warn_ticks"] += 1
+        if verdict:
+            for bit, counter in CONSISTENCY_COUNTED:
+                if verdict & bit:
+                    self.stats.counters[counter] += 1
         for name in TICK_MESSAGES:
             self._send(name, t_wall)
         status = int(out[Out.STATUS])

@@ -66,6 +66,10 @@ COUNTER_HELP = {
     "clock_steps": "steps of the wall clock the daemon measured (its time base is monotonic)",
     "consistency_fail_ticks": "ticks the consistency monitor failed the estimate (VALID cleared)",
     "consistency_warn_ticks": "ticks the consistency monitor warned (DEGRADED)",
+    "consistency_innovation_ticks": "ticks the estimator's Kalman filter innovation test was "
+                                    "beyond its level (DEGRADED, VALID cleared far beyond)",
+    "consistency_imprecise_ticks": "ticks the calibrated sigma_beta was beyond what VALID "
+                                   "promises (VALID cleared)",
 }
 
 

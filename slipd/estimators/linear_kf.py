@@ -57,12 +57,14 @@ from slipd.channels import (
     ST_RESET,
     WHEEL_SPEEDS,
     In,
+    Out,
     Veh,
 )
 from slipd.estimators.common.inputs import ImuMemory, corner_speed_mean, read_inputs, reset_imu
 from slipd.estimators.common.kalman import (
     add_input_noise,
     beta_sigma,
+    innovation_test,
     joseph_update2,
     predict_covariance,
 )
@@ -90,6 +92,7 @@ PARAMS, DEFAULTS = build_params(
     ("LEVER_ARM_3D", 0.0),  # 1 = CoG shift with roll/pitch motion, 0 = planar
     ("ROLL_GAIN_LEARNING", 1.0),  # with the roll compensation: its static gain learnt (slipd)
     ("ACCEL_LOWPASS_HZ", 0.0),  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
+    ("NIS_TIME_CONSTANT", 1.0),  # s, averaging of the innovation test (Out.NIS)
 )  # fmt: skip
 
 LAYOUT = build_layout(
@@ -101,6 +104,7 @@ LAYOUT = build_layout(
     "PREV_VX",  # m/s, the speed the prediction is scheduled on
     "INITIALISED",  # 0 until the first tick with a usable speed measurement
     "TICKS",  # ticks since (re)start
+    "NIS_MEAN",  # the innovation test: NIS per measurement, averaged (common.kalman)
     ("IMU", ImuMemory),  # CoG translation, optional roll compensation, held ax and steer
     ("SCRATCH", 4),  # working memory of the covariance predict
 )
@@ -111,6 +115,7 @@ _VY = int(S.VY)
 _P = int(S.P)
 _IMU = int(S.IMU)
 _SCRATCH = int(S.SCRATCH)
+_NIS_MEAN = int(S.NIS_MEAN)
 _ROLL = _IMU + int(ImuMemory.ROLL)
 #: floor of the speed in the held sigma_beta, m/s
 HELD_SPEED_FLOOR = 0.1
@@ -124,6 +129,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     ))  # fmt: skip
     state = np.zeros(LAYOUT.size, dtype=np.float64)
     reset_imu(state, _IMU)
+    state[S.NIS_MEAN] = np.nan
     return state
 
 
@@ -170,7 +176,8 @@ def model_ay(state, vx, steer, vehicle):
 @nb.njit(cache=True)
 def update(state, ay, ay_ok, yaw_rate, yaw_rate_ok, vx, steer, r_ay, r_yaw_rate, vehicle):
     """x, P with y = [ay, r] (H = C, innovation y - C x - D delta); a measurement flagged not
-    ok is left out. Returns the normalised innovation squared."""
+    ok is left out. Returns the normalised innovation squared and the number of measurements
+    used."""
     _, _, C, _ = single_track_matrices(vx, vehicle)
     h11, h12, inn1, r1 = 0.0, 0.0, 0.0, 1.0
     if ay_ok:
@@ -182,7 +189,8 @@ def update(state, ay, ay_ok, yaw_rate, yaw_rate_ok, vx, steer, r_ay, r_yaw_rate,
         h22 = 1.0
         inn2 = yaw_rate - state[S.R]
         r2 = r_yaw_rate
-    return joseph_update2(state, _VY, _P, h11, h12, 0.0, h22, inn1, inn2, r1, r2)
+    nis = joseph_update2(state, _VY, _P, h11, h12, 0.0, h22, inn1, inn2, r1, r2)
+    return nis, int(ay_ok) + int(yaw_rate_ok)
 
 
 @nb.njit(cache=True)
@@ -196,6 +204,7 @@ def _start(state, vx, yaw_rate, steer, p0_vy, p0_r):
     state[S.PREV_STEER] = steer if math.isfinite(steer) else 0.0
     state[S.PREV_VX] = vx
     state[S.TICKS] = 0.0
+    state[S.NIS_MEAN] = math.nan
 
 
 @nb.njit(cache=True)
@@ -223,8 +232,9 @@ def step(state, u, params, vehicle, dt, out):
     predict(state, state[S.PREV_VX], state[S.PREV_STEER], sigma_steer, vehicle, dt)
     sigma_ay = params[PARAMS.SIGMA_AY]
     sigma_r = params[PARAMS.SIGMA_YAW_RATE]
-    update(state, ay, ay_ok, yaw_rate, yaw_rate_ok, vx, steer, sigma_ay * sigma_ay,
-           sigma_r * sigma_r, vehicle)  # fmt: skip
+    nis, dof = update(state, ay, ay_ok, yaw_rate, yaw_rate_ok, vx, steer, sigma_ay * sigma_ay,
+                      sigma_r * sigma_r, vehicle)  # fmt: skip
+    innovation_test(state, _NIS_MEAN, nis, dof, dt, params[PARAMS.NIS_TIME_CONSTANT])
     state[S.PREV_STEER] = steer
     state[S.PREV_VX] = vx
     vy = state[S.VY]
@@ -246,6 +256,7 @@ def step(state, u, params, vehicle, dt, out):
         status |= ST_NOT_CONVERGED
     write_outputs(out, math.atan2(vy, vx), kinematic_beta_rate(vx, vy, ax, ay, state[S.R]), vx,
                   vy, math.nan, sigma, state[_ROLL], 0.0, status)  # fmt: skip
+    out[Out.NIS] = state[S.NIS_MEAN]
 
 
 @nb.njit(cache=True)

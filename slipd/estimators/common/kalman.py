@@ -21,6 +21,8 @@ import math
 
 import numba as nb
 
+from slipd.estimators.common.filters import lowpass
+
 
 @nb.njit(cache=True)
 def tri(i, j, n):
@@ -286,3 +288,18 @@ def beta_sigma(vx, vy, p_xx, p_xy, p_yy, standstill_sigma):
         return standstill_sigma
     var = beta_variance(vx, vy, p_xx, p_xy, p_yy)[2]
     return math.sqrt(var) if var > 0.0 else 0.0
+
+
+@nb.njit(cache=True, inline="always")
+def innovation_test(state, slot, nis, dof, dt, time_constant):
+    """The innovation test of a Kalman filter (Bar-Shalom, Li, Kirubarajan 2001, "Estimation
+    with Applications to Tracking and Navigation", Sec. 5.4.2): for a filter whose model and
+    noise are right, the normalised innovation squared ``nis`` = nu' S^-1 nu of each update is
+    chi-square with ``dof`` degrees of freedom (the measurements used), mean ``dof``. Kept in
+    ``state[slot]`` is its time average per degree of freedom, NIS / dof low-passed with
+    ``time_constant`` (``filters.lowpass``; NaN starts it), so about 1 while the model explains
+    the measurements and well above it when it does not (a wrong tyre, a saturating axle, a
+    biased sensor). A tick without a measurement (``dof`` 0) holds it. Returns the average."""
+    if dof < 1:
+        return state[slot]
+    return lowpass(state, slot, nis / dof, dt, time_constant)

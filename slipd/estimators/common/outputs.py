@@ -12,7 +12,8 @@ from slipd.channels import ST_NOT_CONVERGED, Out
 @nb.njit(cache=True, inline="always")
 def write_outputs(out, beta, beta_rate, vx, vy, mu, sigma, roll, friction_class, status):
     """Fill ``out``. ``mu`` NaN: the method does not estimate friction; a non-finite roll is
-    written as 0 (a method without a roll estimate passes 0)."""
+    written as 0 (a method without a roll estimate passes 0). NIS is written NaN: a method
+    with a Kalman filter writes its innovation test after this (``common.kalman.nis_test``)."""
     out[Out.BETA] = beta
     out[Out.BETA_RATE] = beta_rate
     out[Out.VX] = vx
@@ -22,6 +23,7 @@ def write_outputs(out, beta, beta_rate, vx, vy, mu, sigma, roll, friction_class,
     out[Out.ROLL] = roll if math.isfinite(roll) else 0.0
     out[Out.FRICTION_CLASS] = friction_class
     out[Out.STATUS] = float(status)
+    out[Out.NIS] = math.nan
 
 
 @nb.njit(cache=True, inline="always")

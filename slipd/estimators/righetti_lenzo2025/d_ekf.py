@@ -61,10 +61,11 @@ def step(state, u, params, vehicle, dt, out):
         rl.hold(state, out, vx_meas, vx_ok, ax, ay, yaw_rate, steer, params, p0_r, 0.0, status)
         return
     # a posteriori with y = [r, ay] (eq. 9) at tick k's speed
-    rl.dynamic_update(
+    nis, dof = rl.dynamic_update(
         state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx_meas, steer, vehicle,
         params[PARAMS.R_YAW_RATE_DYN], params[PARAMS.R_AY_DYN],
     )  # fmt: skip
+    rl.record_innovations(state, nis, dof, params, dt)
     if not ay_ok:
         ay = rl.single_track(state[S.DYN_VY], state[S.DYN_R], vx_meas, steer, vehicle)[2]
     state[S.KIN_VX] = vx_meas

@@ -65,10 +65,13 @@ def step(state, u, params, vehicle, dt, out):
         rl.hold(state, out, vx_meas, vx_ok, ax, ay, yaw_rate, steer, params, p0_r, p0_vx, status)
         return
     # 1. dynamic EKF, a posteriori with y = [r, ay] (eq. 9); speed input: vx_kin of k-1
-    rl.dynamic_update(
+    nis, dof = rl.dynamic_update(
         state, yaw_rate, yaw_rate_ok, ay, ay_ok, state[S.PREV_VX], steer, vehicle,
         params[PARAMS.R_YAW_RATE_DYN], params[PARAMS.R_AY_DYN],
     )  # fmt: skip
+    # the innovation test is the dynamic EKF's: the kinematic KF's pseudo-measurement is the
+    # dynamic vy itself, its innovations say nothing about the model
+    rl.record_innovations(state, nis, dof, params, dt)
     if not ay_ok:
         ay = rl.single_track(state[S.DYN_VY], state[S.DYN_R], state[S.PREV_VX], steer, vehicle)[2]
     p_vy_dyn = state[_DYN_P_VV]

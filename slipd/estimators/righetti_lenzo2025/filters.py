@@ -53,10 +53,11 @@ import math
 import numba as nb
 import numpy as np
 
-from slipd.channels import ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, G, Veh
+from slipd.channels import ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, G, Out, Veh
 from slipd.estimators.common.inputs import ImuMemory, corner_speed_mean, read_inputs, reset_imu
 from slipd.estimators.common.kalman import (
     beta_sigma,
+    innovation_test,
     joseph_update2,
     optional_row,
     per_step,
@@ -84,6 +85,7 @@ LAYOUT = build_layout(
     ("IMU", ImuMemory),  # CoG translation, roll compensation, held ax and steer
     "INITIALISED",  # 0 until the first tick with a usable speed measurement
     "TICKS",  # ticks since init or reset
+    "NIS_MEAN",  # the innovation test: NIS per measurement, averaged (common.kalman)
     ("SCRATCH", 4),  # working memory of the covariance predict
 )  # fmt: skip
 S = LAYOUT.S
@@ -93,6 +95,7 @@ _KIN_VX = int(S.KIN_VX)
 _KIN_P = int(S.KIN_P)
 _IMU = int(S.IMU)
 _SCRATCH = int(S.SCRATCH)
+_NIS_MEAN = int(S.NIS_MEAN)
 _ROLL = _IMU + int(ImuMemory.ROLL)
 _LAST_AX = _IMU + int(ImuMemory.LAST_AX)
 _LAST_STEER = _IMU + int(ImuMemory.LAST_STEER)
@@ -114,6 +117,7 @@ FILTER_PARAMS = (
     ("LEVER_ARM_3D", 1.0),  # 1 = CoG shift with roll/pitch motion, 0 = planar
     ("ROLL_GAIN_LEARNING", 1.0),  # 1 = the roll compensation's static gain learnt, 0 = profile's
     ("ACCEL_LOWPASS_HZ", 0.0),  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
+    ("NIS_TIME_CONSTANT", 1.0),  # s, averaging of the innovation test (Out.NIS)
 )
 #: Q_dyn and R_dyn of eq. 28 (Sec. 4), the dynamic EKF's in dk_ekf and d_ekf ("The D-EKF
 #: covariance matrices are set equal to the ones in (28)"); they follow FILTER_PARAMS there.
@@ -199,13 +203,14 @@ def dynamic_update(state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx, steer, vehicle, 
     """A posteriori step of the dynamic EKF with y = [r_meas, ay_meas] (eq. 9).
 
     A measurement flagged not ok is left out (its H row and innovation zeroed). Returns the
-    normalised innovation squared."""
+    normalised innovation squared and the number of measurements used."""
     _, _, ay_model, j11, j12, _, _ = single_track(state[S.DYN_VY], state[S.DYN_R], vx, steer,
                                                   vehicle)  # fmt: skip
     # H = d h / d x: row 1 picks r, row 2 is d ay_model / d(vy, r) = [J11, J12 + vx]
     h11, h12, inn1, r1 = optional_row(yaw_rate_ok, 0.0, 1.0, yaw_rate - state[S.DYN_R], r_r)
     h21, h22, inn2, r2 = optional_row(ay_ok, j11, j12 + vx, ay - ay_model, r_ay)
-    return joseph_update2(state, _DYN_VY, _DYN_P, h11, h12, h21, h22, inn1, inn2, r1, r2)
+    nis = joseph_update2(state, _DYN_VY, _DYN_P, h11, h12, h21, h22, inn1, inn2, r1, r2)
+    return nis, int(yaw_rate_ok) + int(ay_ok)
 
 
 @nb.njit(cache=True)
@@ -222,10 +227,11 @@ def kinematic_predict(state, ax, ay, yaw_rate, q_vx, q_vy, dt):
 @nb.njit(cache=True)
 def kinematic_update(state, vx_meas, vx_ok, r_vx, vy_pseudo, vy_ok, r_vy):
     """A posteriori step of the kinematic KF, H = I (eq. 19) or H = [1 0] (eq. 14, vy_ok False).
-    Returns the normalised innovation squared."""
+    Returns the normalised innovation squared and the number of measurements used."""
     h11, h12, inn1, r1 = optional_row(vx_ok, 1.0, 0.0, vx_meas - state[S.KIN_VX], r_vx)
     h21, h22, inn2, r2 = optional_row(vy_ok, 0.0, 1.0, vy_pseudo - state[S.KIN_VY], r_vy)
-    return joseph_update2(state, _KIN_VX, _KIN_P, h11, h12, h21, h22, inn1, inn2, r1, r2)
+    nis = joseph_update2(state, _KIN_VX, _KIN_P, h11, h12, h21, h22, inn1, inn2, r1, r2)
+    return nis, int(vx_ok) + int(vy_ok)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -242,6 +248,7 @@ def new_state(vehicle: np.ndarray, method: str) -> np.ndarray:
     ))  # fmt: skip
     state = np.zeros(LAYOUT.size, dtype=np.float64)
     reset_imu(state, _IMU)
+    state[S.NIS_MEAN] = np.nan
     return state
 
 
@@ -270,6 +277,7 @@ def reset_state(state, vx, yaw_rate, steer, p0_vy, p0_r, p0_vx):
     state[_LAST_AX] = 0.0
     state[_LAST_STEER] = steer
     state[S.TICKS] = 0.0
+    state[S.NIS_MEAN] = math.nan
 
 
 @nb.njit(cache=True, inline="always")
@@ -380,6 +388,13 @@ def write_estimate(state, out, vx, vy, p_xx, p_xy, p_yy, ax, ay, yaw_rate, param
         status |= ST_NOT_CONVERGED
     write_outputs(out, math.atan2(vy, vx), kinematic_beta_rate(vx, vy, ax, ay, yaw_rate), vx, vy,
                   math.nan, sigma, state[_ROLL], 0.0, status)  # fmt: skip
+    out[Out.NIS] = state[S.NIS_MEAN]
+
+
+@nb.njit(cache=True, inline="always")
+def record_innovations(state, nis, dof, params, dt):
+    """The tick's update into the innovation test (``common.kalman.innovation_test``)."""
+    innovation_test(state, _NIS_MEAN, nis, dof, dt, params[FILTER.NIS_TIME_CONSTANT])
 
 
 @nb.njit(cache=True, inline="always")

@@ -68,7 +68,8 @@ def step(state, u, params, vehicle, dt, out):
         per_step(params[PARAMS.Q_VY], dt, nominal_dt), dt,
     )  # fmt: skip
     # a posteriori with y = vx_meas, H = [1 0] (eq. 14), R_K of eq. 30
-    rl.kinematic_update(state, vx_meas, vx_ok, params[PARAMS.R_VX], 0.0, False, 1.0)
+    nis, dof = rl.kinematic_update(state, vx_meas, vx_ok, params[PARAMS.R_VX], 0.0, False, 1.0)
+    rl.record_innovations(state, nis, dof, params, dt)
     if abs(yaw_rate) < params[PARAMS.ZERO_VY_YAW_RATE]:
         state[S.KIN_VY] = 0.0  # Sec. 4: vy := 0 on straights against the drift
     p_yy = state[_KIN_P + 2]
