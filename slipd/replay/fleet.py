@@ -26,7 +26,8 @@ exits 1.
 
 Workers need slipd installed (and the logs and a profile path at the same place); each warms
 numba's keyed cache (slipd.numba_cache) and the run's kernels once, through a worker plugin,
-before its first task.
+before its first task. A ``local`` cluster's workers are forked from a forkserver that has
+loaded the kernels once (slipd.replay.dask_forkserver), so the plugin finds them loaded.
 """
 
 from __future__ import annotations
@@ -95,9 +96,10 @@ def dask_client(spec: str, methods: list[str], profile: str) -> Iterator:
     cluster = None
     try:
         if kind == "local":
-            cluster = LocalCluster(n_workers=int(value), threads_per_worker=1, processes=True,
-                                   host="127.0.0.1", dashboard_address=None,
-                                   silence_logs=40)
+            with _forkserver_with_kernels(methods, profile):
+                cluster = LocalCluster(n_workers=int(value), threads_per_worker=1,
+                                       processes=True, host="127.0.0.1",
+                                       dashboard_address=None, silence_logs=40)
             client = Client(cluster)
         else:
             client = Client(str(value), timeout=30)
@@ -112,6 +114,23 @@ def dask_client(spec: str, methods: list[str], profile: str) -> Iterator:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+@contextlib.contextmanager
+def _forkserver_with_kernels(methods: list[str], profile: str) -> Iterator[None]:
+    """Local workers forked from a forkserver that has imported distributed and slipd and
+    loaded the run's kernels (slipd.replay.dask_forkserver), instead of spawned interpreters
+    that each import and load them again. Only for the workers started inside the block (a
+    worker its nanny restarts later is spawned as usual and warmed by KernelWarmup)."""
+    import dask
+    from distributed.utils import get_mp_context
+
+    from slipd.replay import dask_forkserver
+
+    os.environ[dask_forkserver.KERNELS_VARIABLE] = f"{','.join(methods)}@{profile}"
+    with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
+        get_mp_context().set_forkserver_preload(["distributed", dask_forkserver.__name__])
+        yield
 
 
 def run_tasks(client, function: Callable, items: list, names: list[str],
