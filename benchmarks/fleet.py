@@ -207,13 +207,16 @@ def dask(tmp: Path, count: int, methods: str, workers: int, folder: Path | None)
     per_worker = {}
     for worker, seconds in zip(summary["worker"], summary["seconds"], strict=True):
         per_worker[worker] = per_worker.get(worker, 0.0) + seconds
+    seq_tasks = sum(pq.read_table(tmp / "seq" / "summary.parquet")["seconds"].to_pylist())
     rss = worker_peaks(tmp / "dask")
     print(f"sequential (one process, {frames} frames): {seq_wall:.1f} s, peak RSS "
-          f"{seq_rss:.0f} MB")
+          f"{seq_rss:.0f} MB; {seq_tasks:.1f} s in tasks, {seq_wall - seq_tasks:.1f} s "
+          "outside them (start, imports, kernels, summary)")
     print(f"--dask local:{workers}: {dask_wall:.1f} s (client peak RSS {client_rss:.0f} MB; "
           f"per worker: " + ", ".join(f"{s:.1f} s of tasks" for s in per_worker.values())
           + (f"; worker peak RSS {', '.join(f'{r:.0f}' for r in rss)} MB" if rss else "")
-          + ")")
+          + f"); {dask_wall - max(per_worker.values(), default=0.0):.1f} s outside the "
+          "busiest worker's tasks (start, imports, cluster, kernels, close)")
     print(f"speed-up: {seq_wall / dask_wall:.2f}x (target >= 1.7x on 2 cores); "
           f"datasets identical: {same_datasets(tmp / 'seq', tmp / 'dask')}")
 

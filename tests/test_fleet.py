@@ -150,3 +150,29 @@ def test_eval_on_the_cluster_scores_as_eval_here(logs, cluster, tmp_path):
     scores = json.loads(here.read_text())
     assert set(scores["scenarios"]) == {Path(g).name for g in good}
     assert np.isfinite(scores["overall"]["estimators"]["kinematic_heuristic"]["beta_rms_deg"])
+
+
+def test_a_local_cluster_forks_its_workers_from_a_server_that_loaded_the_kernels(logs,
+                                                                                 tmp_path):
+    """--dask local:N: the workers come from the forkserver that imported slipd and loaded
+    the run's kernels (not interpreters of their own), and replay as the sequential run."""
+    from slipd.replay import fleet
+
+    methods = METHODS.split(",")
+    names = ["slalom", "step_steer"]
+    with fleet.dask_client("local:2", methods, "default") as client:
+        preloaded = client.run(lambda: (
+            "slipd.replay.dask_forkserver" in __import__("sys").modules,
+            __import__("os").getppid()))
+        records = fleet.run_fleet([logs / f"{n}.log" for n in names], "default", methods,
+                                  tmp_path / "dataset", client, progress=False)
+    assert len(preloaded) == 2
+    assert all(loaded for loaded, _ in preloaded.values())
+    assert {parent for _, parent in preloaded.values()} != {os.getpid()}
+    assert [r.status for r in records] == ["ok", "ok"]
+    for name in names:
+        alone = tmp_path / f"{name}.parquet"
+        assert main(["replay", str(logs / f"{name}.log"), "--estimator", METHODS,
+                     "--out", str(alone)]) == 0
+        assert_same_rows(tmp_path / "dataset" / "estimates" / f"log={name}" / "part-0.parquet",
+                         alone)

@@ -95,18 +95,25 @@ def test_a_flight_recording_with_skipped_ticks_streams_as_it_replays(recording, 
 def test_cli_files_do_not_depend_on_the_chunk(codec_drives, tmp_path, monkeypatch):
     """CSV bytes (the text Python's f-strings wrote before the kernel), Parquet bytes (fixed
     row groups, the methods one after another) and the merged candump, streamed in 4 KB
-    chunks and in one."""
+    chunks and in one. The small chunks' Parquet writer spills the later methods to files
+    part-way (a small HOLD_BYTES), the whole run's holds them in memory."""
     pq = pytest.importorskip("pyarrow.parquet")
     monkeypatch.setattr(writers, "ROW_GROUP_TICKS", 700)  # several groups per method
     log = codec_drives["mu_jump"].log
     methods = ["zero", "kinematic_heuristic", "ensemble"]
     files = {}
-    for name, mb in (("small", "0.004"), ("whole", "1000")):
+    spilled, spill = [], writers.ParquetWriter._spill
+    monkeypatch.setattr(writers.ParquetWriter, "_spill", lambda self, method, table: (
+        spilled.append(method), spill(self, method, table)))
+    for name, mb, hold in (("small", "0.004", 50_000), ("whole", "1000", writers.HOLD_BYTES)):
+        monkeypatch.setattr(writers, "HOLD_BYTES", hold)
+        spilled.clear()
         for suffix in (".csv", ".parquet"):
             out = tmp_path / f"{name}{suffix}"
             assert main(["replay", str(log), "--estimator", ",".join(methods), "--out",
                          str(out), "--chunk-mb", mb]) == 0
             files[name, suffix] = out.read_bytes()
+        assert bool(spilled) == (name == "small"), spilled[:3]
         merged = tmp_path / f"{name}.merged.log"
         assert main(["replay", str(log), "--estimator", "dk_ekf", "--candump", str(merged),
                      "--chunk-mb", mb]) == 0

@@ -26,7 +26,8 @@ exits 1.
 
 Workers need slipd installed (and the logs and a profile path at the same place); each warms
 numba's keyed cache (slipd.numba_cache) and the run's kernels once, through a worker plugin,
-before its first task.
+before its first task. A ``local`` cluster's workers are forked from a forkserver that has
+loaded the kernels once (slipd.replay.dask_forkserver), so the plugin finds them loaded.
 """
 
 from __future__ import annotations
@@ -95,9 +96,10 @@ def dask_client(spec: str, methods: list[str], profile: str) -> Iterator:
     cluster = None
     try:
         if kind == "local":
-            cluster = LocalCluster(n_workers=int(value), threads_per_worker=1, processes=True,
-                                   host="127.0.0.1", dashboard_address=None,
-                                   silence_logs=40)
+            with _forkserver_with_kernels(methods, profile):
+                cluster = LocalCluster(n_workers=int(value), threads_per_worker=1,
+                                       processes=True, host="127.0.0.1",
+                                       dashboard_address=None, silence_logs=40)
             client = Client(cluster)
         else:
             client = Client(str(value), timeout=30)
@@ -112,6 +114,23 @@ def dask_client(spec: str, methods: list[str], profile: str) -> Iterator:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+@contextlib.contextmanager
+def _forkserver_with_kernels(methods: list[str], profile: str) -> Iterator[None]:
+    """Local workers forked from a forkserver that has imported distributed and slipd and
+    loaded the run's kernels (slipd.replay.dask_forkserver), instead of spawned interpreters
+    that each import and load them again. Only for the workers started inside the block (a
+    worker its nanny restarts later is spawned as usual and warmed by KernelWarmup)."""
+    import dask
+    from distributed.utils import get_mp_context
+
+    from slipd.replay import dask_forkserver
+
+    os.environ[dask_forkserver.KERNELS_VARIABLE] = f"{','.join(methods)}@{profile}"
+    with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
+        get_mp_context().set_forkserver_preload(["distributed", dask_forkserver.__name__])
+        yield
 
 
 def run_tasks(client, function: Callable, items: list, names: list[str],
@@ -247,16 +266,16 @@ def _replay_into(job: LogJob, record: LogRecord, started: float) -> None:
     from slipd.replay.stream import CHUNK_BYTES, LogStream
     from slipd.replay.writers import ParquetWriter, RunInfo
 
-    profile = load_profile(job.profile)
+    profile, record.profile_sha256, pipelines = _loaded(job.profile, load_profile)
     record.profile_name = profile.name
-    record.profile_sha256 = profile_sha256(profile)
     if job.profile_sha256 and record.profile_sha256 != job.profile_sha256:
         raise ConfigError(f"profile {job.profile} on {socket.gethostname()} differs from the "
                           f"one the run was started with (SHA-256 {record.profile_sha256} != "
                           f"{job.profile_sha256})")
     methods = list(job.methods)
     stream = LogStream(job.log, profile, methods, job.skip_bad, dict(job.bus_map) or None,
-                       job.chunk_bytes or CHUNK_BYTES, checksum=True)
+                       job.chunk_bytes or CHUNK_BYTES, checksum=True, pipelines=pipelines)
+    pipelines.update(stream.runs.pipelines)
     writer = None
     target = None
     if job.out_dir is not None:
@@ -292,6 +311,25 @@ def _replay_into(job: LogJob, record: LogRecord, started: float) -> None:
             with contextlib.suppress(OSError):
                 target.parent.rmdir()  # the log's partition folder, when it holds nothing
         raise
+
+
+#: this process's profiles and their methods' Pipelines: profile as given -> (the TOML's and
+#: DBC's SHA-256 when loaded, Profile, {method: Pipeline}); a worker's later logs reuse them
+#: (~85 ms of a short log with every method) while the files stay the same
+_LOADED: dict[str, tuple[str, object, dict]] = {}
+
+
+def _loaded(profile: str, load_profile: Callable) -> tuple[object, str, dict]:
+    """(Profile, its SHA-256, its Pipelines so far) of ``profile``: loaded again when its
+    files changed."""
+    cached = _LOADED.get(profile)
+    if cached is not None:
+        fingerprint = profile_sha256(cached[1])
+        if fingerprint == cached[0]:
+            return cached[1], fingerprint, cached[2]
+    loaded = load_profile(profile)
+    _LOADED[profile] = (profile_sha256(loaded), loaded, {})
+    return loaded, _LOADED[profile][0], _LOADED[profile][2]
 
 
 def partition_path(out_dir: Path, key: str) -> Path:

@@ -448,8 +448,13 @@ class MethodRuns:
     """Methods stepping through a log's chunks: one Pipeline and one carried state each."""
 
     def __init__(self, profile: Profile, methods: Iterable[str],
-                 overrides: dict[str, float] | None = None, dt: float = TICK_DT):
-        self.pipelines = {name: Pipeline(name, profile, overrides, dt) for name in methods}
+                 overrides: dict[str, float] | None = None, dt: float = TICK_DT,
+                 pipelines: dict[str, Pipeline] | None = None):
+        """``pipelines``: ones built before for this profile, overrides and dt (a Pipeline
+        keeps no state of a run: a worker replaying many logs builds each once)."""
+        built = pipelines if pipelines is not None else {}
+        self.pipelines = {name: built.get(name) or Pipeline(name, profile, overrides, dt)
+                          for name in methods}
         self.states = {name: p.new_state() for name, p in self.pipelines.items()}
 
     def run(self, inputs: Inputs) -> dict[str, np.ndarray]:
@@ -483,13 +488,14 @@ class LogStream:
     def __init__(self, log: str | Path, profile: Profile | str, methods: Iterable[str] = (),
                  skip_bad: bool = False, bus_map: dict[str, str] | None = None,
                  chunk_bytes: int = CHUNK_BYTES, overrides: dict[str, float] | None = None,
-                 checksum: bool = False, dt: float = TICK_DT):
+                 checksum: bool = False, dt: float = TICK_DT,
+                 pipelines: dict[str, Pipeline] | None = None):
         self.log = Path(log)
         self.profile = load_profile(profile) if isinstance(profile, str) else profile
         self.methods = list(methods)
         self.skip_bad, self.bus_map, self.chunk_bytes = skip_bad, bus_map, chunk_bytes
         self.checksum, self.dt = checksum, dt
-        self.runs = MethodRuns(self.profile, self.methods, overrides, dt)
+        self.runs = MethodRuns(self.profile, self.methods, overrides, dt, pipelines)
         self.read = ReadStats(str(self.log))
         self.latcher = Latcher(self.profile, bus_map, dt, str(self.log))
         self.first_time: float | None = None

@@ -9,9 +9,10 @@ leaving the ``with`` block on an exception, removes it).
 
 The tables (CSV, Parquet) hold one method's rows after another's, in the order the methods
 were first written, however the rows were handed in: the first method's rows go straight to
-the file, the others' wait in hidden spill files beside it (CSV text, Arrow IPC with zstd) that
-``close`` appends. Parquet row groups hold ROW_GROUP_TICKS rows of one method each (a method's
-last group fewer), each written from contiguous arrays. So a streamed run and a whole-run
+the file, the others' wait in hidden spill files beside it (CSV text, Arrow IPC with zstd;
+Parquet keeps them in memory while they fit in HOLD_BYTES) that ``close`` appends. Parquet
+row groups hold ROW_GROUP_TICKS rows of one method each (a method's last group fewer), each
+written from contiguous arrays. So a streamed run and a whole-run
 write give the same bytes (tests/test_stream.py).
 
 * ``.csv``: plain (one header row, ``pandas.read_csv`` with defaults reads it), the table of
@@ -46,6 +47,11 @@ from slipd.replay import textformat
 DEG = 180.0 / math.pi
 #: rows of a Parquet row group (22 minutes of one method's ticks, ~10 MB in memory)
 ROW_GROUP_TICKS = 1 << 17
+#: Arrow bytes of the later methods' rows a Parquet writer holds in memory before it spills
+#: them to files: a short log (a fleet's minutes-long drives) never touches a spill (writing
+#: and reading back the spills was ~120 ms of a ~0.75 s log with every method), a long one
+#: spills as before with at most this much more memory.
+HOLD_BYTES = 32 << 20
 
 #: The replay table (CSV, Parquet): name -> (Out column or None, scale from SI, unit).
 TABLE_COLUMNS: dict[str, tuple[Out | None, float, str]] = {
@@ -292,6 +298,9 @@ class ParquetWriter(EstimateWriter):
             raise ConfigError(f"--out {path}: cannot write: {exc}") from exc
         self._order = _MethodOrder(self.path, ".arrows")
         self._spills: dict[str, object] = {}
+        #: the later methods' tables while they fit in HOLD_BYTES (first-written order)
+        self._held: dict[str, list] | None = {}
+        self._held_bytes = 0
         self._waiting: list = []  # tables of the current method not yet in a row group
         self._waiting_rows = 0
 
@@ -315,6 +324,18 @@ class ParquetWriter(EstimateWriter):
         if self._order.is_direct(method):
             self._add(table)
             return
+        if self._held is not None:
+            self._held.setdefault(method, []).append(table)
+            self._held_bytes += table.nbytes
+            if self._held_bytes > HOLD_BYTES:
+                held, self._held = self._held, None
+                for name, tables in held.items():
+                    for part in tables:
+                        self._spill(name, part)
+            return
+        self._spill(method, table)
+
+    def _spill(self, method: str, table) -> None:
         if method not in self._spills:
             path = self._order.spill_path(method)
             options = self._pa.ipc.IpcWriteOptions(compression="zstd")
@@ -351,6 +372,11 @@ class ParquetWriter(EstimateWriter):
             return
         try:
             self._end_method()
+            for tables in (self._held or {}).values():
+                for table in tables:
+                    self._add(table)
+                self._end_method()
+            self._held = None
             for method, spill in self._spills.items():
                 spill.close()
                 # a NativeFile, not the path: open_stream memory-maps a path, and the pages
