@@ -176,3 +176,22 @@ def test_a_local_cluster_forks_its_workers_from_a_server_that_loaded_the_kernels
                      "--out", str(alone)]) == 0
         assert_same_rows(tmp_path / "dataset" / "estimates" / f"log={name}" / "part-0.parquet",
                          alone)
+
+
+def test_a_local_cluster_listens_on_loopback_only():
+    """`--dask local:N` binds loopback only (the project's network rule): the scheduler and
+    the HTTP server distributed starts even with dashboard_address=None (dask/distributed#8136)
+    run in this process; every socket it listens on must be 127.0.0.1 or ::1."""
+    import shutil
+
+    from slipd.replay.fleet import dask_client
+
+    if shutil.which("ss") is None:
+        pytest.skip("needs ss (iproute2) to list this process's listening sockets")
+
+    with dask_client("local:1", ["zero"], "default") as client:
+        info = client.scheduler_info()
+        listening = subprocess.run(["ss", "-ltnpH"], capture_output=True, text=True).stdout
+    mine = [line.split()[3] for line in listening.splitlines() if f"pid={os.getpid()}," in line]
+    assert info["address"].startswith("tcp://127.0.0.1:")
+    assert mine and all(a.startswith(("127.0.0.1:", "[::1]:")) for a in mine), mine
