@@ -322,6 +322,19 @@ _POW10_FLOAT = np.array([10.0**k for k in range(19)])
 
 
 @nb.njit(cache=True)
+def _decimal(buf, p, most):
+    """The decimal digits from ``p``: (value, count, position after them), reading at most
+    ``most`` + 1 digits (a count over ``most`` means too many)."""
+    value = 0
+    count = 0
+    while p < buf.shape[0] and 48 <= buf[p] <= 57 and count <= most:
+        value = value * 10 + (buf[p] - 48)
+        count += 1
+        p += 1
+    return value, count, p
+
+
+@nb.njit(cache=True)
 def _scan_plain_line(buf, pos, width, row, data_out):
     """The common line in one pass: ``(SECONDS.FRACTION) CHANNEL ID#HEXDATA`` then a newline
     (or the buffer's end), one blank between the fields, a classic data frame of at most 8
@@ -334,25 +347,12 @@ def _scan_plain_line(buf, pos, width, row, data_out):
     p = pos
     if p >= n or buf[p] != 40 or row >= data_out.shape[0] or width < 8:
         return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
-    p += 1
-    int_part = 0
-    digits = 0
-    while p < n and 48 <= buf[p] <= 57:
-        int_part = int_part * 10 + (buf[p] - 48)
-        digits += 1
-        p += 1
+    int_part, digits, p = _decimal(buf, p + 1, MAX_SECONDS_DIGITS)
     if digits == 0 or digits > MAX_SECONDS_DIGITS or p >= n or buf[p] != 46:
         return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
-    p += 1
-    frac = 0
-    frac_digits = 0
-    while p < n and 48 <= buf[p] <= 57:
-        frac = frac * 10 + (buf[p] - 48)
-        frac_digits += 1
-        p += 1
-        if digits + frac_digits > 18:
-            return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
-    if frac_digits == 0 or p + 1 >= n or buf[p] != 41 or buf[p + 1] != 32:
+    frac, frac_digits, p = _decimal(buf, p + 1, 18 - digits)  # exact below 19 digits
+    if frac_digits == 0 or frac_digits > 18 - digits or p + 1 >= n or buf[p] != 41 or \
+            buf[p + 1] != 32:
         return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
     if int_part * _POW10_INT[frac_digits] + frac >= 2**53:
         return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
