@@ -28,14 +28,9 @@ def ahead(items: Iterable[T], depth: int = 1, name: str = "slipd ahead") -> Iter
     results: queue.Queue = queue.Queue(maxsize=max(1, depth))
     stop = threading.Event()
 
-    def put(item) -> bool:
-        while not stop.is_set():
-            try:
-                results.put(item, timeout=0.05)
-                return True
-            except queue.Full:
-                continue
-        return False
+    def put(item) -> bool:  # False: the consumer has gone
+        results.put(item)  # blocks (no polling) while the consumer is behind
+        return not stop.is_set()
 
     def produce() -> None:
         iterator = iter(items)
@@ -63,4 +58,8 @@ def ahead(items: Iterable[T], depth: int = 1, name: str = "slipd ahead") -> Iter
             yield item
     finally:
         stop.set()
-        worker.join()
+        while worker.is_alive():  # unblock its put; it sees the stop and closes ``items``
+            try:
+                results.get_nowait()
+            except queue.Empty:
+                worker.join(0.01)
