@@ -1,22 +1,36 @@
-"""Replay throughput: read + decode + estimate a 1-hour candump log, against the library path.
+"""Replay throughput on the same frames: slipd end to end against asammdf and the library path.
 
-The log is the simulator's mixed endurance drive cut to --hours (every input message of the
-default profile at its bus rate, counters and CRCs), or any candump log given with --log.
+The logs are the simulator's mixed endurance drive cut to --hours (every input message of the
+default profile at its bus rate, counters and CRCs), and its first --short-minutes as a second
+log; or any candump log given with --log. Each log is also written as a bus-logging MF4
+(python-can's layout, benchmarks.formats.write_bus_mf4) beforehand, untimed. On each log, in
+one run:
 
-fast path: slipd.replay (numba candump reader -> codec latch_ticks -> run_ticks).
-end to end: what ``slipd replay LOG --out x.csv`` / ``x.parquet`` runs (the streaming replay:
-read, decode, estimate and write the file, chunk by chunk), timed in this process once its
-kernels are loaded, as the command's own "M frames/s" figure.
+slipd end to end: what ``slipd replay LOG --estimator M --out x.parquet`` (and ``x.csv``) runs
+(the streaming replay: read, decode with the E2E checks, latch, estimate, write the file,
+chunk by chunk), timed in this process once its kernels are loaded, for one method and for
+``all``; and the same from the MF4 (``slipd replay LOG.mf4``).
+asammdf: ``MDF(LOG.mf4).extract_bus_logging({"CAN": [(DBC, 0)]})`` (open and decode only: no
+E2E checks, no latch, no estimate, no file written): the peer analysts use.
+candump read: the streaming reader alone (slipd.replay.stream.frame_chunks: line blocks ->
+parse kernel), MB/s of log text.
+fast path: slipd.replay in memory (read_candump -> latch_log -> run_method), per stage.
 library path: python-can LogReader + cantools decode_message + the same estimator's step
-called per tick from Python (measured on the first minutes, reported per frame).
+called per tick from Python (the long log's first --library-frames frames, per frame).
 
-    .venv/bin/python -m benchmarks.replay [--hours 1] [--estimator kinematic_heuristic]
+    .venv/bin/python -m benchmarks.replay [--hours 1] [--short-minutes 10]
+        [--estimator kinematic_heuristic] [--profile]
+
+Each figure is the best of --repeats runs; the ratios are of figures measured in this run.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import io
 import math
+import pstats
 import tempfile
 import time
 from pathlib import Path
@@ -69,34 +83,144 @@ def library_path(log: Path, profile, method_name: str, limit_frames: int) -> tup
     return count, time.perf_counter() - started
 
 
-def cli_rate(log: Path, method: str, out: Path, repeats: int = 3) -> float:
-    """Frames per second of ``slipd replay LOG --estimator METHOD --out OUT`` (best of
-    ``repeats``), the command's own function and figure."""
-    from slipd.commands.replay import replay_one
-
-    best = 0.0
+def best_of(repeats: int, run) -> float:
+    """Shortest wall time of ``repeats`` calls of ``run()``."""
+    best = math.inf
     for _ in range(repeats):
         started = time.perf_counter()
-        summary = replay_one(log, "default", [method], out, None, False)
-        elapsed = time.perf_counter() - started
-        frames = int(summary.split(": ", 1)[1].split(" frames", 1)[0])
-        best = max(best, frames / elapsed)
-        out.unlink()
+        run()
+        best = min(best, time.perf_counter() - started)
     return best
+
+
+def cli_seconds(log: Path, methods: list[str], out: Path | None, repeats: int) -> float:
+    """Wall time of ``slipd replay LOG --estimator METHODS [--out OUT]`` (best of
+    ``repeats``): the command's own function."""
+    from slipd.commands.replay import replay_one
+
+    def run() -> None:
+        replay_one(log, "default", methods, out, None, False)
+        if out is not None:
+            out.unlink()
+
+    return best_of(repeats, run)
+
+
+def asammdf_seconds(mf4: Path, dbc: Path, repeats: int) -> float:
+    """Wall time of asammdf opening the MF4 and decoding its bus logging with the DBC."""
+    from asammdf import MDF
+
+    def run() -> None:
+        with MDF(str(mf4)) as mdf:
+            decoded = mdf.extract_bus_logging({"CAN": [(str(dbc), 0)]})
+            if not len(decoded.channels_db):
+                raise RuntimeError(f"asammdf decoded nothing of {mf4}")
+            decoded.close()
+
+    return best_of(repeats, run)
+
+
+def read_seconds(log: Path, repeats: int) -> tuple[float, int]:
+    """Wall time of the streaming candump reader alone, and the frames it read."""
+    from slipd.replay.stream import frame_chunks
+
+    count = 0
+
+    def run() -> None:
+        nonlocal count
+        count = sum(len(frames) for frames in frame_chunks(log))
+
+    return best_of(repeats, run), count
+
+
+def write_mf4_of(log: Path, mf4: Path) -> None:
+    from benchmarks.formats import START, write_bus_mf4
+
+    frames = read_candump(log)
+    if frames.data.shape[1] > 8 or (frames.flags & ~np.uint8(64 | 128)).any():
+        raise SystemExit(f"{log}: the MF4 copy holds classic standard-ID data frames only")
+    write_bus_mf4(mf4, frames.t - START, frames.frame_id, frames.data)
+
+
+def cut_minutes(log: Path, minutes: float, out: Path) -> None:
+    """The log's first ``minutes`` of frames (whole lines) as a log of its own."""
+    frames = read_candump(log)
+    end = int(np.searchsorted(frames.t, frames.t[0] + 60.0 * minutes, side="right"))
+    lines = int(frames.line[end - 1])
+    with open(log, "rb") as source, open(out, "wb") as target:
+        for _ in range(lines):
+            target.write(source.readline())
+
+
+def profile_replay(log: Path, method: str, out: Path) -> str:
+    """cProfile of one end-to-end replay: the top functions by own time."""
+    from slipd.commands.replay import replay_one
+
+    profiler = cProfile.Profile()
+    profiler.enable()
+    replay_one(log, "default", [method], out, None, False)
+    profiler.disable()
+    out.unlink()
+    text = io.StringIO()
+    pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(10)
+    return "\n".join(line for line in text.getvalue().splitlines()
+                     if line.strip() and not line.startswith(("   Ordered", "   List")))
+
+
+def measure_log(log: Path, mf4: Path, args, tmp: Path) -> dict:
+    """Every end-to-end figure of one log (seconds), and its size."""
+    profile = load_profile("default")
+    r = args.repeats
+    seconds = {
+        "parquet": cli_seconds(log, [args.estimator], tmp / "x.parquet", r),
+        "csv": cli_seconds(log, [args.estimator], tmp / "x.csv", r),
+        "none": cli_seconds(log, [args.estimator], None, r),
+        "all": cli_seconds(log, registry.parse_names("all"), tmp / "x.parquet", r),
+        "mf4": cli_seconds(mf4, [args.estimator], tmp / "x.parquet", r),
+        "asammdf": asammdf_seconds(mf4, profile.dbc_path, r),
+    }
+    seconds["read"], frames = read_seconds(log, r)
+    return {"seconds": seconds, "frames": frames, "mb": log.stat().st_size / 1e6,
+            "mf4_mb": mf4.stat().st_size / 1e6}
+
+
+def report_log(name: str, figures: dict, estimator: str, target: float) -> None:
+    s, n, mb = figures["seconds"], figures["frames"], figures["mb"]
+
+    def rate(key: str) -> str:
+        return f"{s[key]:6.2f} s  {n / s[key] / 1e6:5.2f} M frames/s"
+
+    print(f"{name}: {n} frames, {mb:.0f} MB candump text, {figures['mf4_mb']:.0f} MB MF4")
+    print(f"  slipd replay --estimator {estimator} --out x.parquet  {rate('parquet')}")
+    print(f"  slipd replay --estimator {estimator} --out x.csv      {rate('csv')}")
+    print(f"  slipd replay --estimator {estimator} (no --out)       {rate('none')}")
+    print(f"  slipd replay --estimator all --out x.parquet          {rate('all')}")
+    print(f"  slipd replay LOG.mf4 --estimator {estimator} --out x.parquet  {rate('mf4')}")
+    print(f"  asammdf MDF + extract_bus_logging (decode only)       {rate('asammdf')}")
+    print(f"  candump read (frame_chunks)  {s['read']:6.2f} s  {mb / s['read']:6.0f} MB/s "
+          f"(target >= 1000 MB/s)")
+    print(f"  ratio asammdf / slipd --out x.parquet: {s['asammdf'] / s['parquet']:.2f}x "
+          f"(target >= {target:g}x); from the MF4: {s['asammdf'] / s['mf4']:.2f}x; "
+          f"--estimator all: {s['asammdf'] / s['all']:.2f}x")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hours", type=float, default=1.0)
+    parser.add_argument("--short-minutes", type=float, default=10.0)
     parser.add_argument("--estimator", default="kinematic_heuristic")
     parser.add_argument("--library-frames", type=int, default=100_000)
+    parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--log", type=Path, help="benchmark this candump log instead")
     parser.add_argument("--random", action="store_true",
                         help="random signal values instead of a simulated drive (no sim extra)")
+    parser.add_argument("--profile", action="store_true",
+                        help="print where an end-to-end replay of the long log spends its time")
     args = parser.parse_args()
     profile = load_profile("default")
-    with tempfile.TemporaryDirectory() as tmp:
-        log = args.log or Path(tmp) / "bus.log"
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        log = args.log or tmp / "bus.log"
         if args.log is None and args.random:
             t, ids, data = bus_frames(Codec(profile), args.hours * 3600.0,
                                       np.random.default_rng(0))
@@ -109,14 +233,22 @@ def main() -> None:
             write_log(log, simulate("endurance", duration=args.hours * 3600.0), profile)
             print(f"simulated endurance drive ({args.hours:g} h) in "
                   f"{time.perf_counter() - started:.0f} s")
-        size_mb = log.stat().st_size / 1e6
-        # warm-up (compile or load the numba cache) on the first frames
-        warm = read_candump(log)
-        run_method(latch_log(warm.select(np.arange(len(warm)) < 1000), profile), profile,
-                   args.estimator)
-        del warm
+        short = tmp / "short.log"
+        cut_minutes(log, args.short_minutes, short)
+        for path in (log, short):  # the MF4 copies, untimed
+            write_mf4_of(path, path.with_suffix(".mf4"))
+        # warm-up (compile or load the numba cache, imports) on the short log
+        from slipd.replay.stream import warm_kernels
+
+        warm_kernels([args.estimator, *registry.parse_names("all")])
+        measure_log(short, short.with_suffix(".mf4"), argparse.Namespace(
+            repeats=1, estimator=args.estimator), tmp)
+        long_figures = measure_log(log, log.with_suffix(".mf4"), args, tmp)
+        short_figures = measure_log(short, short.with_suffix(".mf4"), args, tmp)
+        if args.profile:
+            print(profile_replay(log, args.estimator, tmp / "x.parquet"))
         timings = []
-        for _ in range(3):
+        for _ in range(args.repeats):
             started = time.perf_counter()
             frames = read_candump(log)
             read_done = time.perf_counter()
@@ -130,21 +262,22 @@ def main() -> None:
         assert not np.isnan(estimate.out[:, Out.BETA]).all()
         n = len(frames)
         count, slow = library_path(log, profile, args.estimator, args.library_frames)
-        end_to_end = {suffix: cli_rate(log, args.estimator, Path(tmp) / f"x{suffix}")
-                      for suffix in (".csv", ".parquet")}
     fast_rate, slow_rate = n / total, count / slow
     hours = (frames.t[-1] - frames.t[0]) / 3600.0
-    print(f"log: {hours:.2f} h, {n} frames, {len(estimate.t)} ticks, {size_mb:.0f} MB")
-    print(f"slipd replay (read {read_s:.2f} s + decode/latch {latch_s:.2f} s + "
+    report_log(f"long log ({hours:.2f} h)", long_figures, args.estimator, 3.0)
+    report_log(f"short log ({args.short_minutes:g} min)", short_figures, args.estimator, 2.0)
+    print(f"fast path in memory (read {read_s:.2f} s + decode/latch {latch_s:.2f} s + "
           f"{args.estimator} {est_s:.2f} s = {total:.2f} s): {fast_rate / 1e6:.2f} M frames/s")
     print(f"library path (LogReader + cantools + step per tick, {count} frames): "
           f"{slow_rate / 1e6:.3f} M frames/s")
-    for suffix, rate in end_to_end.items():
-        print(f"slipd replay --out x{suffix} (end to end, file written): {rate / 1e6:.2f} M "
-              f"frames/s ({rate / slow_rate:.0f}x the library path, {rate / fast_rate:.2f} of "
-              f"the in-memory fast path; target >= 2 M)")
-    print(f"ratio: {fast_rate / slow_rate:.0f}x; a day of driving (24 h) replays in "
-          f"{24 / hours * total:.0f} s")
+    long_s = long_figures["seconds"]
+    for key in ("csv", "parquet"):
+        rate = long_figures["frames"] / long_s[key]
+        print(f"slipd replay --out x.{key} (long log, end to end, file written): "
+              f"{rate / 1e6:.2f} M frames/s ({rate / slow_rate:.0f}x the library path, "
+              f"{rate / fast_rate:.2f} of the in-memory fast path; target >= 2 M)")
+    print(f"a day of driving (24 h) replays with --out x.parquet in "
+          f"{24 / hours * long_s['parquet']:.0f} s")
     assert math.isfinite(fast_rate)
 
 

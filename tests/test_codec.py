@@ -363,3 +363,23 @@ def test_value_table_codes_mark_a_value_not_available(tmp_path):
     assert state.errors[0, kernels.ERR_NOT_AVAILABLE] == 1
     assert decode(1100, 0.02) == 0 and u[VALID + In.YAW_RATE] == 1.0
     assert profile.dbc_path == dbc
+
+
+@settings(max_examples=300, deadline=None)
+@given(start=st.integers(0, 511), length=st.integers(1, 64), big_endian=st.booleans(),
+       payload=st.binary(min_size=8, max_size=64))
+def test_word_extraction_equals_the_byte_loop(start, length, big_endian, payload):
+    """decode_frame reads a signal inside the first 8 bytes from the payload's two words
+    (one shift and mask); every other signal through the byte loop: both give _raw's bits."""
+    position = start % (len(payload) * 8 - length + 1) if length <= len(payload) * 8 else 0
+    plan_i = np.zeros((1, kernels.I_COLS), dtype=np.int64)
+    plan_i[0, kernels.S_START] = position
+    plan_i[0, kernels.S_LENGTH] = length
+    plan_i[0, kernels.S_BIG_ENDIAN] = int(big_endian)
+    data = np.frombuffer(payload, dtype=np.uint8).copy()
+    le, be = (np.uint64(w) for w in kernels._payload_words(data))
+    assert kernels._raw_words(plan_i, 0, data, le, be) == kernels._raw(plan_i, 0, data)
+    short = data[:7]  # shorter than a word: the byte loop
+    if position + length <= 56:
+        le, be = (np.uint64(w) for w in kernels._payload_words(short))
+        assert kernels._raw_words(plan_i, 0, short, le, be) == kernels._raw(plan_i, 0, short)

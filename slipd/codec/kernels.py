@@ -113,7 +113,7 @@ LOOKUP_N_EXT = 1
 LOOKUP_HEADER = 2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def lookup_message(lookup, bus, frame_id, extended):
     """Message row of a frame ID on bus ``bus``, or -1 when the plan does not know it."""
     n_bus = lookup[LOOKUP_N_BUS]
@@ -140,7 +140,7 @@ def lookup_message(lookup, bus, frame_id, extended):
     return -1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _raw(plan_i, row, data):
     """The signal's raw bits (unsigned, right-aligned) from the payload bytes."""
     length = plan_i[row, S_LENGTH]
@@ -168,6 +168,37 @@ def _raw(plan_i, row, data):
             got += take
             position += take
     return value
+
+
+@nb.njit(cache=True, inline="always")
+def _payload_words(data):
+    """The payload's first 8 bytes as two uint64 words, (little-endian, big-endian): byte 0
+    lowest in the first, highest in the second. Zeros when ``data`` is shorter than 8."""
+    le = np.uint64(0)
+    be = np.uint64(0)
+    if data.shape[0] >= 8:
+        for i in range(8):
+            b = np.uint64(data[i])
+            le |= b << np.uint64(8 * i)
+            be = (be << np.uint64(8)) | b
+    return le, be
+
+
+@nb.njit(cache=True, inline="always")
+def _raw_words(plan_i, row, data, le, be):
+    """:func:`_raw` with the payload's words (:func:`_payload_words`) at hand: one shift and
+    mask when the signal lies within the first 8 bytes (every classic frame's signal), else
+    the byte loop. In the big-endian word the MSB-first bit index ``i`` (S_START's numbering)
+    is bit ``63 - i``, so a signal's LSB at ``start + length - 1`` is bit
+    ``64 - start - length``; in the little-endian word bit ``i`` is bit ``i``."""
+    length = plan_i[row, S_LENGTH]
+    position = plan_i[row, S_START]
+    if data.shape[0] < 8 or length >= 64 or position + length > 64:
+        return _raw(plan_i, row, data)
+    mask = (np.uint64(1) << np.uint64(length)) - np.uint64(1)
+    if plan_i[row, S_BIG_ENDIAN]:
+        return (be >> np.uint64(64 - position - length)) & mask
+    return (le >> np.uint64(position)) & mask
 
 
 @nb.njit(cache=True)
@@ -200,7 +231,7 @@ def _put_raw(plan_i, row, raw, out):
             position += take
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _ieee(bits, length):
     if length == 32:
         sign = -1.0 if (bits >> np.uint64(31)) & np.uint64(1) else 1.0
@@ -221,7 +252,7 @@ def _ieee(bits, length):
     return sign * math.ldexp(mantissa | 0x10000000000000, exponent - 1075)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _physical_of_raw(plan_i, plan_f, row, raw):
     length = plan_i[row, S_LENGTH]
     if plan_i[row, S_FLOAT]:
@@ -247,7 +278,7 @@ def decode_signal(plan_i, plan_f, row, data, dlc):
     return signal_physical(plan_i, plan_f, row, data)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _available(plan_i, row, raw, data):
     """False when the sender marks this value as not available: a value-table code of the
     signal, or its qualifier signal outside the valid values."""
@@ -262,7 +293,7 @@ def _available(plan_i, row, raw, data):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def e2e_code(plan_i, msg, frame_id, data, dlc, counter):
     """The CRC/checksum the message's E2E scheme expects for this payload (the opendbc
     functions of the same names, see slipd.codec.e2e)."""
@@ -330,7 +361,7 @@ def e2e_code(plan_i, msg, frame_id, data, dlc, counter):
     return crc ^ 0xFF
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, timeouts,
                  latch, msg_state, errors, scratch):
     """Check one frame received on bus ``bus`` and, if it passes, write its channels into
@@ -349,14 +380,15 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
     if dlc != plan_i[msg, M_DLC]:
         errors[msg, ERR_LENGTH] += 1
         return -2
+    le, be = _payload_words(data)
     counter = np.int64(-1)
     counter_row = plan_i[msg, M_COUNTER_ROW]
     if counter_row >= 0:
-        counter = np.int64(_raw(plan_i, counter_row, data))
+        counter = np.int64(_raw_words(plan_i, counter_row, data, le, be))
     if plan_i[msg, M_E2E] != E2E_NONE:
         crc_row = plan_i[msg, M_CRC_ROW]
         if e2e_code(plan_i, msg, frame_id, data, dlc, counter) != np.int64(
-            _raw(plan_i, crc_row, data)
+            _raw_words(plan_i, crc_row, data, le, be)
         ):
             errors[msg, ERR_E2E] += 1
             return -2
@@ -394,7 +426,7 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
         slot = plan_i[row, S_SLOT]
         if slot < 0:
             continue
-        raw = _raw(plan_i, row, data)
+        raw = _raw_words(plan_i, row, data, le, be)
         physical = _physical_of_raw(plan_i, plan_f, row, raw)
         if (plan_i[row, S_N_INVALID] > 0 or plan_i[row, S_VALID_ROW] >= 0) and not _available(
                 plan_i, row, raw, data):
@@ -409,7 +441,7 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
             errors[msg, ERR_RANGE] += 1
             return -2
         sign_row = plan_i[row, S_SIGN_ROW]
-        if sign_row >= 0 and _raw(plan_i, sign_row, data) != np.uint64(0):
+        if sign_row >= 0 and _raw_words(plan_i, sign_row, data, le, be) != np.uint64(0):
             physical = -physical
         if plan_i[row, S_ACCUMULATE]:
             scratch[slot] += physical * plan_f[row, F_FACTOR]
@@ -462,7 +494,7 @@ def sample_latch(latch, channel_timeouts, calibration, t, u):
     calibrate(calibration, u)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, calibration, frame_time,
                 frame_bus, frame_id, frame_flags, frame_dlc, frame_data, tick_time, tick_until,
                 latch, msg_state, errors, U):

@@ -264,6 +264,15 @@ def _scan_marker(buf, p, stop):
 
 
 @nb.njit(cache=True)
+def _same_bytes(buf, a, b, length):
+    """``buf[a:a+length] == buf[b:b+length]``."""
+    for j in range(length):
+        if buf[a + j] != buf[b + j]:
+            return False
+    return True
+
+
+@nb.njit(cache=True)
 def _channel_index(buf, start, length, chan_table, n_chan):
     """Index of the channel name ``buf[start:start+length]`` in ``chan_table``, added when
     new: (code, index, n_chan)."""
@@ -301,9 +310,90 @@ def _line_bounds(buf, pos):
     return p, stop, end + 1
 
 
+#: hex digit value of each byte, -1 for a byte that is none
+_HEX_VALUE = np.full(256, -1, dtype=np.int64)
+for _k, _c in enumerate(b"0123456789ABCDEF"):
+    _HEX_VALUE[_c] = _k
+for _k, _c in enumerate(b"abcdef"):
+    _HEX_VALUE[_c] = 10 + _k
+#: exact powers of ten (the timestamp's fraction scale)
+_POW10_INT = np.array([10**k for k in range(19)], dtype=np.int64)
+_POW10_FLOAT = np.array([10.0**k for k in range(19)])
+
+
 @nb.njit(cache=True)
+def _decimal(buf, p, most):
+    """The decimal digits from ``p``: (value, count, position after them), reading at most
+    ``most`` + 1 digits (a count over ``most`` means too many)."""
+    value = 0
+    count = 0
+    while p < buf.shape[0] and 48 <= buf[p] <= 57 and count <= most:
+        value = value * 10 + (buf[p] - 48)
+        count += 1
+        p += 1
+    return value, count, p
+
+
+@nb.njit(cache=True)
+def _scan_plain_line(buf, pos, width, row, data_out):
+    """The common line in one pass: ``(SECONDS.FRACTION) CHANNEL ID#HEXDATA`` then a newline
+    (or the buffer's end), one blank between the fields, a classic data frame of at most 8
+    bytes whose timestamp the exact formula covers. Returns (ok, next line's start,
+    int_part, frac, int_digits, frac_digits, channel start, channel length, can_id,
+    id_digits, length), data bytes written into ``data_out[row]``. Any other line (``ok`` 0)
+    goes through the general stages of :func:`_parse`, which accept a superset of these
+    lines and read them to the same values (tests/test_candump.py holds the two equal)."""
+    n = buf.shape[0]
+    p = pos
+    if p >= n or buf[p] != 40 or row >= data_out.shape[0] or width < 8:
+        return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
+    int_part, digits, p = _decimal(buf, p + 1, MAX_SECONDS_DIGITS)
+    if digits == 0 or digits > MAX_SECONDS_DIGITS or p >= n or buf[p] != 46:
+        return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
+    frac, frac_digits, p = _decimal(buf, p + 1, 18 - digits)  # exact below 19 digits
+    if frac_digits == 0 or frac_digits > 18 - digits or p + 1 >= n or buf[p] != 41 or \
+            buf[p + 1] != 32:
+        return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
+    if int_part * _POW10_INT[frac_digits] + frac >= 2**53:
+        return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
+    p += 2
+    chan_start = p
+    while p < n and buf[p] > 32:
+        p += 1
+    chan_len = p - chan_start
+    if chan_len == 0 or p >= n or buf[p] != 32:
+        return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
+    p += 1
+    can_id = 0
+    id_digits = 0
+    while p < n and buf[p] != 35:
+        h = _HEX_VALUE[buf[p]]
+        if h < 0 or id_digits == 8:
+            return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
+        can_id = can_id * 16 + h
+        id_digits += 1
+        p += 1
+    if id_digits == 0 or p >= n or can_id > 0x1FFFFFFF or (id_digits <= 3 and can_id > 0x7FF):
+        return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
+    p += 1
+    length = 0
+    while p < n and buf[p] != 10:
+        if p + 1 >= n or length == 8:
+            return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
+        hi = _HEX_VALUE[buf[p]]
+        lo = _HEX_VALUE[buf[p + 1]]
+        if hi < 0 or lo < 0:
+            return 0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0
+        data_out[row, length] = hi * 16 + lo
+        length += 1
+        p += 2
+    return (1, p + 1, int_part, frac, digits, frac_digits, chan_start, chan_len, can_id,
+            id_digits, length)
+
+
+@nb.njit(cache=True, nogil=True)
 def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, chan_out,
-           line_out, chan_table, bad_out, fallback_out):
+           line_out, chan_table, bad_out, fallback_out, one_pass=True):
     """Parse every line; returns (n_frames, n_bad, first_error_line, error_code, n_channels,
     needed_width). ``chan_table`` [MAX_CHANNELS, 2] holds (offset, length) of each distinct
     channel name. ``line_out`` gets each frame's line number. ``fallback_out`` holds, per
@@ -316,32 +406,51 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
     n_bad = 0
     n_chan = 0
     needed = 0
+    last_chan = -1
+    last_start = 0
+    last_len = 0
     while pos < n:
         line_no += 1
-        p, stop, next_pos = _line_bounds(buf, pos)
-        pos = next_pos
-        if p >= stop:
-            continue
-        code, p, int_part, frac, digits, frac_digits, approx = _scan_timestamp(buf, p, stop)
-        chan_start = 0
-        chan_len = 0
-        can_id = 0
-        id_digits = 0
         flags = 0
-        length = 0
+        approx = 0.0
+        (plain, next_pos, int_part, frac, digits, frac_digits, chan_start, chan_len, can_id,
+         id_digits, length) = (_scan_plain_line(buf, pos, width, count, data_out) if one_pass
+                               else (0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+        if plain:
+            pos = next_pos
+            code = 0
+        else:
+            if count < data_out.shape[0]:  # wipe what the one-pass scan wrote
+                for j in range(width):
+                    data_out[count, j] = 0
+            p, stop, next_pos = _line_bounds(buf, pos)
+            pos = next_pos
+            if p >= stop:
+                continue
+            code, p, int_part, frac, digits, frac_digits, approx = _scan_timestamp(buf, p,
+                                                                                 stop)
+            chan_start = 0
+            chan_len = 0
+            can_id = 0
+            id_digits = 0
+            length = 0
+            if code == 0:
+                code, p, chan_start, chan_len = _scan_channel(buf, p, stop)
+            if code == 0:
+                code, p, can_id, id_digits = _scan_id(buf, p, stop)
+            if code == 0:
+                code, p, flags, length = _scan_payload(buf, p, stop, width, count, data_out)
+            if code == 0:
+                code, marker = _scan_marker(buf, p, stop)
+                flags |= marker
         chan_index = -1
-        if code == 0:
-            code, p, chan_start, chan_len = _scan_channel(buf, p, stop)
-        if code == 0:
-            code, p, can_id, id_digits = _scan_id(buf, p, stop)
-        if code == 0:
-            code, p, flags, length = _scan_payload(buf, p, stop, width, count, data_out)
-        if code == 0:
-            code, marker = _scan_marker(buf, p, stop)
-            flags |= marker
-        if code == 0:
+        if code == 0 and last_chan >= 0 and chan_len == last_len and _same_bytes(
+                buf, chan_start, last_start, chan_len):
+            chan_index = last_chan
+        elif code == 0:
             code, chan_index, n_chan = _channel_index(buf, chan_start, chan_len, chan_table,
                                                       n_chan)
+            last_chan, last_start, last_len = chan_index, chan_start, chan_len
         if code != 0:
             if not skip_bad:
                 return count, n_bad, line_no, code, n_chan, needed
@@ -364,8 +473,9 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
             needed = length
         # (int_part * 10^n + frac) is exact below 2^53, and one division by an exact power
         # of ten is then correctly rounded: the same double as Python's float() of the text.
-        scale = 10.0**frac_digits
-        exact = digits + frac_digits <= 18 and (int_part * 10**frac_digits + frac) < 2**53
+        scale = _POW10_FLOAT[frac_digits] if frac_digits <= 18 else 10.0**frac_digits
+        exact = digits + frac_digits <= 18 and (int_part * _POW10_INT[frac_digits] + frac
+                                                ) < 2**53
         t_out[count] = (int_part * scale + frac) / scale if exact else approx
         fallback_out[count] = 0 if exact else line_no
         id_out[count] = can_id
@@ -375,6 +485,15 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
         line_out[count] = line_no
         count += 1
     return count, n_bad, 0, 0, n_chan, needed
+
+
+@nb.njit(cache=True, nogil=True)
+def count_newlines(buf):
+    """Newline bytes in ``buf`` (uint8), without the temporary of ``np.count_nonzero``."""
+    count = 0
+    for i in range(buf.shape[0]):
+        count += buf[i] == 10
+    return count
 
 
 def _load_bytes(path: Path) -> tuple[np.ndarray, object]:
@@ -420,12 +539,13 @@ def read_candump(path: str | Path, skip_bad: bool = False) -> Frames:
 
 
 def parse_candump(buf: np.ndarray, source: str, skip_bad: bool = False,
-                  first_line: int = 1) -> Frames:
+                  first_line: int = 1, one_pass: bool = True) -> Frames:
     """The frames of the whole ``candump -L`` lines in ``buf`` (uint8). ``first_line`` is the
     line number of ``buf``'s first line in ``source`` (a piece of a longer log, read in
     chunks by slipd.replay.stream), so errors and skipped lines name the log's own lines.
-    Channel indices are this piece's own, in order of first appearance."""
-    n_lines = int(np.count_nonzero(buf == 10)) + 1
+    Channel indices are this piece's own, in order of first appearance. ``one_pass`` False
+    skips the one-pass scan of the common line (tests: the two read the same frames)."""
+    n_lines = int(count_newlines(buf)) + 1
     width = 8
     shift = first_line - 1
     while True:
@@ -441,7 +561,7 @@ def parse_candump(buf: np.ndarray, source: str, skip_bad: bool = False,
         fallback = np.zeros(n_lines, dtype=np.int64)
         count, n_bad, err_line, err_code, n_chan, needed = _parse(
             buf, width, skip_bad, t, ids, flags, dlc, data, chan, line, chan_table, bad,
-            fallback)
+            fallback, one_pass)
         if err_code:
             text = bytes(_line_text(buf, err_line)).decode("utf-8", "replace")
             raise LogFormatError(

@@ -48,7 +48,14 @@ from slipd.codec import Codec, kernels
 from slipd.errors import ConfigError, LogFormatError
 from slipd.pipeline import TICK_DT, Pipeline, steps_per_tick
 from slipd.profile import Profile, load_profile
-from slipd.replay.candump import FLAG_TX, MAX_CHANNELS, Frames, parse_candump
+from slipd.replay.ahead import ahead
+from slipd.replay.candump import (
+    FLAG_TX,
+    MAX_CHANNELS,
+    Frames,
+    count_newlines,
+    parse_candump,
+)
 from slipd.replay.engine import (
     Inputs,
     _channels_carrying,
@@ -107,7 +114,7 @@ def line_blocks(path: Path, chunk_bytes: int = CHUNK_BYTES, digest=None
                 continue
             block = buf[:cut]
             yield block, line
-            line += int(np.count_nonzero(block == 10))
+            line += int(count_newlines(block))
             carry = end - cut
             buf[:carry] = buf[cut:end]
 
@@ -174,8 +181,11 @@ def frame_chunks(path: str | Path, skip_bad: bool = False, chunk_bytes: int = CH
     base_suffix = suffixes.removesuffix(".gz")
     if base_suffix in readers.CANDUMP_SUFFIXES or base_suffix == "":
         digest = hashlib.sha256() if checksum else None
-        for block, first_line in line_blocks(path, chunk_bytes, digest):
-            yield stats.adopt(parse_candump(block, str(path), skip_bad, first_line))
+        blocks = line_blocks(path, chunk_bytes, digest)
+        parsed = (parse_candump(block, str(path), skip_bad, first_line)
+                  for block, first_line in blocks)
+        for frames in ahead(parsed, 2, f"parse {path}"):  # read and parsed in a thread
+            yield stats.adopt(frames)
         if digest is not None:
             stats.sha256 = digest.hexdigest()
         return
@@ -509,6 +519,12 @@ class LogStream:
         return self.latcher.ticks
 
     def __iter__(self) -> Iterator[Chunk]:
+        # read, decode and latch in a thread, a chunk ahead of the estimate (slipd.replay.ahead)
+        for inputs, read in ahead(self._latched(), 1, f"latch {self.log}"):
+            yield self._estimate(inputs, read)
+
+    def _latched(self) -> Iterator[tuple[Inputs, Frames]]:
+        """Each chunk's latched inputs and the frames read for it."""
         chunks = frame_chunks(self.log, self.skip_bad, self.chunk_bytes, self.read,
                               self.checksum)
         read: Frames | None = None  # frames read since the last chunk was handed out
@@ -518,14 +534,14 @@ class LogStream:
             read = concat_frames(read, frames)
             latched = self.latcher.feed(frames)
             if latched is not None:
-                yield self._estimate(latched.inputs, read)
+                yield latched.inputs, read
                 read = None
         latched = self.latcher.finish()
         if latched is not None or (read is not None and len(read)):
             inputs = latched.inputs if latched is not None else Inputs(
                 np.zeros(0), np.zeros((0, U_LEN)), {}, 0)
-            yield self._estimate(inputs, read if read is not None else
-                                 frames_empty(self.read.channels, str(self.log)))
+            yield inputs, (read if read is not None else
+                           frames_empty(self.read.channels, str(self.log)))
 
     def _estimate(self, inputs: Inputs, read: Frames) -> Chunk:
         return Chunk(inputs, read, self.runs.run(inputs))

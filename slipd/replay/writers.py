@@ -293,7 +293,11 @@ class ParquetWriter(EstimateWriter):
         self.schema = pa.schema(fields, metadata={"slipd": json.dumps(info.as_dict())})
         self._dictionary = pa.array(list(info.methods), type=pa.string())
         try:
-            self._writer = pq.ParquetWriter(str(self.partial), self.schema, compression="zstd")
+            # Dictionary pages only for the estimator name: on the float columns (every
+            # value distinct) pyarrow's default builds a dictionary per column and gives it
+            # up, which was 2/3 of the writer's time (benchmarks/replay.py) for a larger file.
+            self._writer = pq.ParquetWriter(str(self.partial), self.schema, compression="zstd",
+                                            use_dictionary=["estimator"])
         except OSError as exc:
             raise ConfigError(f"--out {path}: cannot write: {exc}") from exc
         self._order = _MethodOrder(self.path, ".arrows")
