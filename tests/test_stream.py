@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from slipd.channels import N_OUT
 from slipd.cli import main
 from slipd.errors import ConfigError, LogFormatError
 from slipd.estimators.registry import available
@@ -297,3 +298,21 @@ def test_an_exact_sum_is_fsum_however_it_is_cut(values, cuts):
     for piece in pieces:
         total.merge(piece)
     assert total.value() == math.fsum(values)
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_an_aborted_table_leaves_neither_the_file_nor_its_spills(tmp_path, monkeypatch, suffix):
+    """A replay that fails after the later methods spilled: abort closes every spill writer
+    and removes the spill files with the partial table; nothing is left in the directory."""
+    pytest.importorskip("pyarrow")
+    monkeypatch.setattr(writers, "HOLD_BYTES", 0)  # Parquet spills at once, as CSV does
+    path = tmp_path / f"x{suffix}"
+    methods = ["zero", "d_ekf", "linear_kf"]
+    writer = writers.open_writer(path, writers.RunInfo(methods))
+    t = np.arange(5) * 0.01
+    for _ in range(2):
+        for method in methods:
+            writer.write(method, t, np.zeros((5, N_OUT)))
+    assert len(list(tmp_path.iterdir())) == 3  # the partial table and two spills
+    writer.abort()
+    assert list(tmp_path.iterdir()) == []

@@ -34,6 +34,7 @@ import json
 import math
 import os
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -173,27 +174,37 @@ def partial_path(path: Path) -> Path:
 
 class _MethodOrder:
     """The first method written goes to the file; every other one to a spill file beside it,
-    appended at close in the order the methods first came (see the module docstring)."""
+    appended at close in the order the methods first came (see the module docstring).
+    ``handles``: each spill's open writer (the format's), by method, in that order."""
 
     def __init__(self, path: Path, suffix: str):
         self.path, self.suffix = path, suffix
         self.direct: str | None = None
         self.spills: dict[str, Path] = {}
+        self.handles: dict[str, object] = {}
 
     def is_direct(self, method: str) -> bool:
         if self.direct is None:
             self.direct = method
         return method == self.direct
 
-    def spill_path(self, method: str) -> Path:
-        if method not in self.spills:
+    def handle(self, method: str, open_spill: Callable[[Path], object]):
+        """The spill writer of ``method``, opened on its path the first time."""
+        if method not in self.handles:
             self.spills[method] = self.path.with_name(
                 f".{self.path.stem}.spill{len(self.spills)}{self.suffix}")
-        return self.spills[method]
+            self.handles[method] = open_spill(self.spills[method])
+        return self.handles[method]
 
     def remove(self) -> None:
         for spill in self.spills.values():
             spill.unlink(missing_ok=True)
+
+    def discard(self) -> None:
+        """Close every spill writer and remove the spill files (an aborted run)."""
+        for handle in self.handles.values():
+            handle.close()
+        self.remove()
 
 
 def _table_values(t: np.ndarray, out: np.ndarray) -> dict[str, np.ndarray]:
@@ -226,7 +237,6 @@ class CsvWriter(EstimateWriter):
         self._handle = _open(self.partial, "wb")
         self._handle.write((",".join(TABLE_COLUMNS) + "\n").encode())
         self._order = _MethodOrder(self.path, ".csv")
-        self._spills: dict[str, object] = {}
 
     def write(self, method: str, t: np.ndarray, out: np.ndarray) -> None:
         c = _table_values(t, out)
@@ -235,15 +245,13 @@ class CsvWriter(EstimateWriter):
         if self._order.is_direct(method):
             self._handle.write(text)
             return
-        if method not in self._spills:
-            self._spills[method] = _open(self._order.spill_path(method), "w+b")
-        self._spills[method].write(text)
+        self._order.handle(method, lambda path: _open(path, "w+b")).write(text)
 
     def close(self) -> None:
         if self._finished:
             return
         try:
-            for spill in self._spills.values():
+            for spill in self._order.handles.values():
                 spill.seek(0)
                 shutil.copyfileobj(spill, self._handle, 1 << 22)
                 spill.close()
@@ -261,10 +269,8 @@ class CsvWriter(EstimateWriter):
         super().close()
 
     def _discard(self) -> None:
-        for spill in self._spills.values():
-            spill.close()
+        self._order.discard()
         self._handle.close()
-        self._order.remove()
 
 
 def sidecar_of(path: Path) -> Path:
@@ -301,7 +307,6 @@ class ParquetWriter(EstimateWriter):
         except OSError as exc:
             raise ConfigError(f"--out {path}: cannot write: {exc}") from exc
         self._order = _MethodOrder(self.path, ".arrows")
-        self._spills: dict[str, object] = {}
         #: the later methods' tables while they fit in HOLD_BYTES (first-written order)
         self._held: dict[str, list] | None = {}
         self._held_bytes = 0
@@ -340,12 +345,9 @@ class ParquetWriter(EstimateWriter):
         self._spill(method, table)
 
     def _spill(self, method: str, table) -> None:
-        if method not in self._spills:
-            path = self._order.spill_path(method)
-            options = self._pa.ipc.IpcWriteOptions(compression="zstd")
-            self._spills[method] = self._pa.ipc.new_stream(str(path), self.schema,
-                                                            options=options)
-        self._spills[method].write_table(table)
+        options = self._pa.ipc.IpcWriteOptions(compression="zstd")
+        self._order.handle(method, lambda path: self._pa.ipc.new_stream(
+            str(path), self.schema, options=options)).write_table(table)
 
     def _add(self, table) -> None:
         """Rows of the current method: full row groups are written as they fill."""
@@ -381,7 +383,7 @@ class ParquetWriter(EstimateWriter):
                     self._add(table)
                 self._end_method()
             self._held = None
-            for method, spill in self._spills.items():
+            for method, spill in self._order.handles.items():
                 spill.close()
                 # a NativeFile, not the path: open_stream memory-maps a path, and the pages
                 # of a spill read back count in the RSS (a 24 h log's spills are GBs)
@@ -396,10 +398,8 @@ class ParquetWriter(EstimateWriter):
         super().close()
 
     def _discard(self) -> None:
-        for spill in self._spills.values():
-            spill.close()
+        self._order.discard()
         self._writer.close()
-        self._order.remove()
 
 
 def _json_schema(title: str, properties: dict[str, tuple[str, str, str]]) -> bytes:
