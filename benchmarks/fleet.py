@@ -8,13 +8,16 @@ streaming) measured in this run on the 1.1 h and 2.2 h logs; the 24 h whole-log 
 attempted (it needs ~20 GB) unless --whole-24h. The streamed and the whole-log Parquet files
 are compared byte for byte.
 
-dask: N simulated logs (the suite's scenarios in turn, seeds 0, 1, ...) replayed sequentially
-in one process (``slipd.replay.fleet.run_fleet`` without a client: the same tasks one after the
+dask: N simulated logs (the suite's scenarios in turn, seeds 0, 1, ...), then N drives of
+--minutes each made of them back to back (fleet logs are drives, not 10-60 s manoeuvres; the
+cluster's start is a fixed cost the short logs cannot amortise), replayed sequentially in one
+process (``slipd.replay.fleet.run_fleet`` without a client: the same tasks one after the
 other) against ``slipd replay LOGS --dask local:2``; wall time of each command (process start,
 kernel loading and the cluster's start included), the ratio, the peak RSS per worker, and the
 two datasets compared table by table.
 
-    .venv/bin/python -m benchmarks.fleet [--log ENDURANCE.log] [--logs 40] [--skip-24h]
+    .venv/bin/python -m benchmarks.fleet [--log ENDURANCE.log] [--logs 40] [--minutes 10]
+        [--skip-24h]
 """
 
 from __future__ import annotations
@@ -71,19 +74,48 @@ def whole_log_replay(log: str, out: str, methods: str) -> None:
 
 
 def concatenated(source: Path, copies: int, path: Path, gap: float = 1.0) -> Path:
-    """``copies`` of a candump log one after another, each shifted in time to start ``gap`` s
+    """``copies`` of a candump log one after another (``joined``)."""
+    return joined([source] * copies, path, gap)
+
+
+def joined(sources: list[Path], path: Path, gap: float = 1.0) -> Path:
+    """Candump logs one after another in ``path``, each shifted in time to start ``gap`` s
     after the previous one ends (counters and CRCs as recorded: the codec sees a jump at each
     seam, as at a recorder restart)."""
     from slipd.replay.candump import read_candump, write_candump
 
-    frames = read_candump(source)
-    span = float(frames.t[-1] - frames.t[0]) + gap
     path.unlink(missing_ok=True)
-    for k in range(copies):
-        write_candump(path, frames.t + k * span, frames.frame_id, frames.data, frames.dlc,
+    end = None
+    for k, source in enumerate(sources):
+        frames = read_candump(source)
+        shift = 0.0 if end is None else end + gap - float(frames.t[0])
+        write_candump(path, frames.t + shift, frames.frame_id, frames.data, frames.dlc,
                       flags=frames.flags, channel=frames.channel, channels=frames.channels,
                       append=k > 0)
+        end = float(frames.t[-1]) + shift
     return path
+
+
+def drives(logs: list[Path], minutes: float, folder: Path) -> list[Path]:
+    """As many logs as ``logs``, each a drive of ``minutes``: log k followed by k + 1, k + 2, ...
+    (in turn) until it lasts that long. Fleet logs are drives of minutes to hours; the suite's
+    scenarios last 10-60 s."""
+    from slipd.replay.candump import read_candump
+
+    spans = [float(f.t[-1] - f.t[0]) for f in map(read_candump, logs)]
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for k in range(len(logs)):
+        parts, total, j = [], 0.0, k
+        while total < 60.0 * minutes:
+            parts.append(logs[j % len(logs)])
+            total += spans[j % len(logs)] + 1.0
+            j += 1
+        path = folder / f"drive{k:03d}.log"
+        if not path.exists():
+            joined(parts, path)
+        out.append(path)
+    return out
 
 
 def sha256(path: Path) -> str:
@@ -191,13 +223,27 @@ def same_datasets(a: Path, b: Path) -> bool:
     return True
 
 
-def dask(tmp: Path, count: int, methods: str, workers: int, folder: Path | None) -> None:
-    import pyarrow.parquet as pq
-
+def dask(tmp: Path, count: int, methods: str, workers: int, folder: Path | None,
+         minutes: float) -> None:
+    """The suite-length logs, then (``minutes`` > 0) drives of that length made of them."""
     started = time.perf_counter()
     logs = simulated_logs(folder or tmp / "logs", count)
     print(f"{len(logs)} simulated logs ({sum(p.stat().st_size for p in logs) / 1e6:.0f} MB) "
           f"in {time.perf_counter() - started:.0f} s", flush=True)
+    sequential_against_dask(tmp / "suite-length", logs, methods, workers)
+    if minutes > 0:
+        started = time.perf_counter()
+        long = drives(logs, minutes, (folder or tmp / "logs") / f"drives-{minutes:g}min")
+        print(f"{len(long)} drives of {minutes:g} min, the suite's scenarios back to back "
+              f"({sum(p.stat().st_size for p in long) / 1e6:.0f} MB) in "
+              f"{time.perf_counter() - started:.0f} s", flush=True)
+        sequential_against_dask(tmp / f"{minutes:g}min", long, methods, workers)
+
+
+def sequential_against_dask(tmp: Path, logs: list[Path], methods: str, workers: int) -> None:
+    import pyarrow.parquet as pq
+
+    tmp.mkdir(parents=True)
     code = ("import sys; from benchmarks.fleet import sequential_fleet; "
             "sequential_fleet(*sys.argv[1:])")
     # warm the numba cache for these methods (both runs then load it)
@@ -266,6 +312,9 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--fleet-logs", type=Path, metavar="DIR",
                         help="keep the simulated logs of the Dask run here (and reuse them)")
+    parser.add_argument("--minutes", type=float, default=10.0,
+                        help="also run the Dask comparison on drives of this length made of "
+                        "the simulated logs (0: not)")
     parser.add_argument("--only", choices=("memory", "dask"))
     args = parser.parse_args()
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
@@ -275,7 +324,8 @@ def main() -> None:
             log = args.log or endurance_log(tmp)
             memory(log, tmp, args.estimator, args.day_copies, args.skip_24h, args.whole_24h)
         if args.only != "memory":
-            dask(tmp, args.logs, args.dask_estimator, args.workers, args.fleet_logs)
+            dask(tmp, args.logs, args.dask_estimator, args.workers, args.fleet_logs,
+                 args.minutes)
 
 
 if __name__ == "__main__":
