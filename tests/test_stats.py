@@ -234,6 +234,47 @@ def test_the_loops_answer_never_summarises_a_histogram(loop, monkeypatch):
     assert loop.documents >= 1
 
 
+def test_a_snapshot_carries_the_words_sent_with_its_answer():
+    """The loop sends its words (estimator, events) before it answers; the server's main
+    thread and its collector both read the control socket. The main thread had received
+    them and not yet stored them when the collector built the snapshot: a Prometheus scrape
+    labelled the estimator ''. Slowed down here, that window is 0.3 s wide."""
+    from slipd.daemon.stats_server import SnapshotSource
+
+    shared = SharedStats()
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    source = SnapshotSource(theirs, shared)
+    store = source._store_words
+
+    def slow_store(message: bytes) -> None:
+        time.sleep(0.3)
+        store(message)
+
+    source._store_words = slow_store
+    threading.Thread(target=source.run, daemon=True).start()
+    stop = threading.Event()
+
+    def loop() -> None:  # StatsServer.poll's protocol: words first, then the answer
+        sequence = shared.sequence_words
+        while not stop.is_set():
+            if sequence[0] != sequence[1]:
+                requested = sequence[0]
+                if requested == 1:
+                    ours.send(b'{"estimator": "kinematic_heuristic"}')
+                shared.publish(None)
+                sequence[1] = requested
+            time.sleep(0.002)
+
+    thread = threading.Thread(target=loop)
+    thread.start()
+    try:
+        assert source.get()["estimator"] == "kinematic_heuristic"
+    finally:
+        stop.set()
+        thread.join()
+        ours.close()
+
+
 def test_a_hundred_concurrent_clients_all_get_an_answer_and_share_the_loops(loop):
     """100 `slipd stats` at once: 93 failed with EAGAIN on a listen backlog of 4; now they
     queue, and the loop answers a handful of times for all of them."""

@@ -25,6 +25,7 @@ import argparse
 import contextlib
 import json
 import os
+import select
 import signal
 import socket
 import socketserver
@@ -92,6 +93,7 @@ class SnapshotSource:
         self.latest: dict | None = None
         self.latest_at = -1.0
         self.wanted = threading.Event()
+        self.reading = threading.Lock()  # the control socket: one reader at a time
         threading.Thread(target=self._collect, daemon=True).start()
 
     def get(self) -> dict:
@@ -134,16 +136,19 @@ class SnapshotSource:
                 self.changed.notify_all()
 
     def _drain_words(self) -> None:
-        """Words the loop sent with this answer (it sends them before it sets answered);
-        the main thread may have read them first (run), either stores them."""
-        while True:
-            try:
-                message = self.control.recv(1 << 22, socket.MSG_DONTWAIT)
-            except OSError:  # BlockingIOError: none waiting
-                return
-            if not message:
-                return
-            self._store_words(message)
+        """Words the loop sent with this answer (it sends them before it sets answered).
+        The main thread (run) may be reading them at the same time: under ``reading``
+        either has stored them before the snapshot is built (a snapshot without the
+        estimator's name was served when run had received them and not yet stored them)."""
+        with self.reading:
+            while True:
+                try:
+                    message = self.control.recv(1 << 22, socket.MSG_DONTWAIT)
+                except OSError:  # BlockingIOError: none waiting
+                    return
+                if not message:
+                    return
+                self._store_words(message)
 
     def _store_words(self, message: bytes) -> None:
         words = json.loads(message)
@@ -154,14 +159,21 @@ class SnapshotSource:
         """Read the loop's words until the daemon closes the control socket (or dies)."""
         while True:
             try:
-                message = self.control.recv(1 << 22)
+                select.select([self.control], [], [])
             except InterruptedError:
                 continue
-            except OSError:
+            except (OSError, ValueError):
                 return
-            if not message:
-                return
-            self._store_words(message)
+            with self.reading:
+                try:
+                    message = self.control.recv(1 << 22, socket.MSG_DONTWAIT)
+                except (BlockingIOError, InterruptedError):
+                    continue  # the collector took them
+                except OSError:
+                    return
+                if not message:
+                    return
+                self._store_words(message)
 
 
 class UnixStatsServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
