@@ -234,6 +234,62 @@ def test_the_loops_answer_never_summarises_a_histogram(loop, monkeypatch):
     assert loop.documents >= 1
 
 
+def test_snapshots_taken_during_a_burst_of_updates_are_each_one_instant(tmp_path):
+    """A loop that counts frames, ticks and histogram records as the daemon's does (new
+    CAN IDs appearing as it goes) while 8 clients ask over and over: every snapshot served
+    is one instant of it, between two ticks. Its counters agree with each other and the
+    frames per ID, and the histograms hold exactly the ticks counted (the server copies
+    them before the loop's next tick, or asks again)."""
+    stats = Stats.in_shared_memory()
+    path = str(tmp_path / "burst.sock")
+    server = StatsServer(path, None, stats, log=lambda _line: None)
+    server.wait_ready()
+    stop = threading.Event()
+
+    def loop() -> None:
+        tick = 0
+        while not stop.is_set():
+            tick += 1
+            for k in range(3):  # frames received before the tick
+                stats.count_frame(0x100 + (3 * tick + k) % 97)
+                stats.counters["rx_frames"] += 1
+            stats.counters["ticks"] += 1  # as Daemon._measure: the count, then the records
+            for name in ("cycle_latency_us", "compute_us", "wakeup_lateness_us"):
+                stats.record(name, 100 + tick % 50)
+            stats.counters["valid_ticks"] += 1
+            stats.set_gauges(1, 0.0, 0.0, float(tick))
+            server.poll(lambda fresh: stats.publish(None, {"estimator": "x"} if fresh else None))
+            time.sleep(0.004)
+
+    snapshots: list[dict] = []
+
+    def client() -> None:
+        while not stop.is_set():
+            snapshots.append(query(path, timeout=10))
+
+    threads = [threading.Thread(target=loop)] + [threading.Thread(target=client)
+                                                for _ in range(8)]
+    try:
+        for thread in threads:
+            thread.start()
+        time.sleep(4.0)
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join()
+        server.close()
+    assert len(snapshots) > 50
+    ids_seen = set()
+    for snapshot in snapshots:
+        c = snapshot["counters"]
+        assert c["valid_ticks"] == c["ticks"] == snapshot["uptime_s"], c
+        assert c["rx_frames"] == 3 * c["ticks"] == sum(snapshot["rx_per_id"].values()), c
+        for name in ("cycle_latency_us", "compute_us", "wakeup_lateness_us"):
+            assert snapshot[name]["count"] == c["ticks"], (name, snapshot[name], c)
+        ids_seen.update(snapshot["rx_per_id"])
+    assert len(ids_seen) == 97 and snapshots[-1]["counters"]["ticks"] > 100
+
+
 def test_a_snapshot_carries_the_words_sent_with_its_answer():
     """The loop sends its words (estimator, events) before it answers; the server's main
     thread and its collector both read the control socket. The main thread had received

@@ -51,6 +51,7 @@ from slipd.errors import ConfigError
 
 SHARE_AGE_S = 0.02  # a snapshot at most this old is given to a new client as is
 LOOP_PATIENCE_S = 1.0  # how long a client waits for the loop's answer
+CONSISTENT_ATTEMPTS = 5  # answers asked for until the histograms' copy missed no tick
 
 COUNTER_HELP = {
     "ticks": "ticks run (100 Hz)",
@@ -114,26 +115,46 @@ class SnapshotSource:
                                "stalled)")
 
     def _collect(self) -> None:
-        sequence = self.shared.sequence_words
         while True:
             self.wanted.wait()
             self.wanted.clear()
-            target = sequence[0] + 1
-            sequence[0] = target  # the loop answers in its slack after the next tick
-            deadline = time.monotonic() + LOOP_PATIENCE_S
-            while sequence[1] != target and time.monotonic() < deadline:
-                time.sleep(self.ANSWER_POLL_S)
-            if sequence[1] != target:
-                continue  # the loop is stalled (or stopped): clients get the stale one
-            self._drain_words()
-            document = {**self.shared.read(), **self.words}
-            for index, name in enumerate(HISTOGRAMS):
-                counts = self.shared.counts(index).astype(np.int64)
-                document[name] = self.table.summary(counts)
+            document = None
+            for _attempt in range(CONSISTENT_ATTEMPTS):
+                if not self._ask_loop():
+                    break  # the loop is stalled (or stopped): clients get the stale one
+                document, consistent = self._build()
+                if consistent:
+                    break
+            if document is None:
+                continue
             with self.changed:
                 self.latest = document
                 self.latest_at = time.monotonic()
                 self.changed.notify_all()
+
+    def _ask_loop(self) -> bool:
+        """Ask the loop to publish its numbers; True once it has (within LOOP_PATIENCE_S)."""
+        sequence = self.shared.sequence_words
+        target = sequence[0] + 1
+        sequence[0] = target  # the loop answers in its slack after the next tick
+        deadline = time.monotonic() + LOOP_PATIENCE_S
+        while sequence[1] != target and time.monotonic() < deadline:
+            time.sleep(self.ANSWER_POLL_S)
+        return sequence[1] == target
+
+    def _build(self) -> tuple[dict, bool]:
+        """The snapshot from the published numbers and the histograms, and whether it is
+        one instant: the histograms, which the loop records into in place, are copied
+        before its next tick (the live tick count is still the published one), so they
+        hold exactly the ticks counted."""
+        self._drain_words()
+        document = {**self.shared.read(), **self.words}
+        counts = [self.shared.counts(index).astype(np.int64)
+                  for index in range(len(HISTOGRAMS))]
+        consistent = self.shared.ticks_live() == document["counters"]["ticks"]
+        for name, histogram in zip(HISTOGRAMS, counts, strict=True):
+            document[name] = self.table.summary(histogram)
+        return document, consistent
 
     def _drain_words(self) -> None:
         """Words the loop sent with this answer (it sends them before it sets answered).
