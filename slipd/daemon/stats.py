@@ -1,13 +1,14 @@
 """Latency statistics and counters, and how they are served without disturbing the loop.
 
 The loop records into HDR histograms (``hdrh``) whose counts live in one shared memory block
-(:class:`SharedStats`, a memfd), beside room for its counters, gauges, the codec's decode
-counts and frames per CAN ID. A stats server process (:mod:`slipd.daemon.stats_server`,
-started and watched by the daemon through :class:`StatsServer`) answers ``slipd stats`` on a
-unix socket and Prometheus scrapes through ``prometheus_client``. When it needs a fresh
-snapshot it sends the loop one byte; in its slack after a tick the loop copies its counters
-into the block (:meth:`SharedStats.publish`, a few microseconds: no JSON, no percentiles)
-and answers one byte, plus a short JSON document only when its event lists changed. The
+(:class:`SharedStats`, a memfd), where it also counts its counters, gauges and frames per
+CAN ID as it goes. A stats server process (:mod:`slipd.daemon.stats_server`, started and
+watched by the daemon through :class:`StatsServer`) answers ``slipd stats`` on a unix socket
+and Prometheus scrapes through ``prometheus_client``. When it needs a fresh snapshot it
+raises a number in the block; in its slack after a tick the loop copies its live numbers
+and the codec's decode counts to the block's published area (:meth:`SharedStats.publish`,
+two buffer copies: no JSON, no percentiles, no Python work per counter) and raises its
+answer, plus a short JSON document over a socket only when its event lists changed. The
 server summarises the histograms and builds the snapshot itself, and one answer serves every
 client waiting for it. Before, the loop did all of it: 7-9 ms of pure Python once the
 histograms had filled, a deadline miss per ``slipd stats --watch`` refresh; even the JSON of
@@ -457,7 +458,7 @@ class StatsServer:
     that once, before the loop starts. Requests and answers are two numbers in the shared
     block (``sequence``: requested, answered): the server raises ``requested``; the loop's
     ``poll``, every tick, compares it with what it last answered (a memory read, no system
-    call) and when they differ publishes its counters into the block and sets ``answered``
+    call) and when they differ publishes its numbers in the block and sets ``answered``
     (the server polls it). The pair carries only what is not a number, and only when it
     changed (the loop's words: events, recorder status). Measured on this project's VMs, a
     socket round trip cost the loop p50 64 us in the running daemon (cold caches after
@@ -540,7 +541,7 @@ class StatsServer:
 
     def poll(self, publish: Callable[[bool], bytes]) -> int:
         """Answer the server's request, if it made one since the last answer: ``publish(
-        fresh)`` copies the loop's counters into the shared block and returns the words to
+        fresh)`` publishes the loop's numbers in the shared block and returns the words to
         send besides (JSON, or b"" when they did not change; ``fresh``: the server is new).
         Returns 1 when it answered. Never blocks; no system call unless there are words."""
         if not self._ready:

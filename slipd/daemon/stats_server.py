@@ -151,6 +151,10 @@ class SnapshotSource:
         document = {**self.shared.read(), **self.words}
         counts = [self.shared.counts(index).astype(np.int64)
                   for index in range(len(HISTOGRAMS))]
+        # the loop counts a tick before it records the tick's values (Daemon._measure), and
+        # x86 keeps stores in order and loads in order: a record seen in the copy means the
+        # tick count read after it is ahead (weakly ordered CPUs give no such promise
+        # without a fence, which Python cannot issue: there the check is best effort)
         consistent = self.shared.ticks_live() == document["counters"]["ticks"]
         for name, histogram in zip(HISTOGRAMS, counts, strict=True):
             document[name] = self.table.summary(histogram)
