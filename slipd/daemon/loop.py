@@ -473,7 +473,7 @@ class Daemon:
         now = time.monotonic()
         self.last_frame_at[index] = now
         frame_id = message.arbitration_id
-        stats.rx_per_id[frame_id] = stats.rx_per_id.get(frame_id, 0) + 1
+        stats.count_frame(frame_id)
         timestamp = _microseconds(self._on_time_base(message.timestamp, now, index))
         self.codec.decode(frame_id, message.data, timestamp, message.is_extended_id, bus=index)
         self._last_message = (message, index)
@@ -814,13 +814,14 @@ class Daemon:
                 time.monotonic() - self.started_at)
 
     def _publish(self, fresh: bool) -> bytes:
-        """Answer the stats server (StatsServer.poll): counters into the shared block; the
-        words only when they changed since the last answer (or the server is new)."""
+        """Answer the stats server (StatsServer.poll): the live numbers into the block's
+        published area; the words only when they changed since the last answer (or the
+        server is new)."""
         text = None
         if fresh or self._text_sent != self._text_version:
             text = self._text_document()
             self._text_sent = self._text_version
-        return self.stats.publish(self._gauges(), self.codec.state.errors, text)
+        return self.stats.publish(self.codec.state.errors, text)
 
     def snapshot(self) -> dict:
         """The whole snapshot, computed here (at the end of a run; tests)."""
@@ -923,6 +924,9 @@ class Daemon:
         if latch[LATCH_SET, In.YAW_RATE] > 0.5:
             stats.record("input_age_us",
                          (tick + wall_offset - latch[LATCH_TIME, In.YAW_RATE]) * 1e6)
+        out = self.out  # the snapshot's gauges, written as they change: see SharedStats
+        stats.set_gauges(self.last_status, math.degrees(out[Out.BETA]), out[Out.VX],
+                         sent - self.started_at)
 
     def _next_tick(self, tick: float, woke: float, sent: float) -> float:
         """The next tick's time. A tick whose frames were not out before the next tick is a

@@ -1,13 +1,14 @@
 """Latency statistics and counters, and how they are served without disturbing the loop.
 
 The loop records into HDR histograms (``hdrh``) whose counts live in one shared memory block
-(:class:`SharedStats`, a memfd), beside room for its counters, gauges, the codec's decode
-counts and frames per CAN ID. A stats server process (:mod:`slipd.daemon.stats_server`,
-started and watched by the daemon through :class:`StatsServer`) answers ``slipd stats`` on a
-unix socket and Prometheus scrapes through ``prometheus_client``. When it needs a fresh
-snapshot it sends the loop one byte; in its slack after a tick the loop copies its counters
-into the block (:meth:`SharedStats.publish`, a few microseconds: no JSON, no percentiles)
-and answers one byte, plus a short JSON document only when its event lists changed. The
+(:class:`SharedStats`, a memfd), where it also counts its counters, gauges and frames per
+CAN ID as it goes. A stats server process (:mod:`slipd.daemon.stats_server`, started and
+watched by the daemon through :class:`StatsServer`) answers ``slipd stats`` on a unix socket
+and Prometheus scrapes through ``prometheus_client``. When it needs a fresh snapshot it
+raises a number in the block; in its slack after a tick the loop copies its live numbers
+and the codec's decode counts to the block's published area (:meth:`SharedStats.publish`,
+two buffer copies: no JSON, no percentiles, no Python work per counter) and raises its
+answer, plus a short JSON document over a socket only when its event lists changed. The
 server summarises the histograms and builds the snapshot itself, and one answer serves every
 client waiting for it. Before, the loop did all of it: 7-9 ms of pure Python once the
 histograms had filled, a deadline miss per ``slipd stats --watch`` refresh; even the JSON of
@@ -29,10 +30,9 @@ import mmap
 import os
 import socket
 import stat
-import struct
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, MutableMapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -122,25 +122,72 @@ class StatsLayout:
                    {k: tuple(v) for k, v in data["only"].items()})
 
 
+class SharedCounters(MutableMapping):
+    """The loop's counters by name, each an int64 word of the block's live area: the loop
+    counts into the block as it goes (a memoryview item, as fast as a dict's), so its answer
+    to the stats server copies the words instead of packing 16 Python ints."""
+
+    __slots__ = ("_words",)
+    _index = {name: i for i, name in enumerate(COUNTERS)}
+
+    def __init__(self, words: memoryview) -> None:
+        self._words = words
+
+    def __getitem__(self, name: str) -> int:
+        return self._words[self._index[name]]
+
+    def __setitem__(self, name: str, value: int) -> None:
+        self._words[self._index[name]] = value
+
+    def __delitem__(self, name: str) -> None:
+        raise TypeError("the loop's counters are fixed (COUNTERS)")
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(COUNTERS)
+
+    def __len__(self) -> int:
+        return len(COUNTERS)
+
+
 class SharedStats:
     """The loop's histograms, counters, gauges, decode counts and frames per CAN ID in one
-    shared memory block (an anonymous memfd, handed to the stats server process by
-    descriptor: no file name to clean up, gone with the last process holding it)."""
+    memory block: an anonymous memfd handed to the stats server process by descriptor (no
+    file name to clean up, gone with the last process holding it), or ``private`` memory
+    for a daemon that serves no stats.
 
-    def __init__(self, layout: StatsLayout = StatsLayout(), fd: int | None = None) -> None:
+    The numbers are there twice. The loop writes the *live* area as it goes (counters,
+    gauges once a tick, a count word per CAN ID); its answer to the stats server copies the
+    live area's used prefix to the *published* area in one buffer copy, and the decode
+    counts (the codec's own array) beside it in another, whatever the number of counters or
+    IDs: O(1) Python work on cold caches, where packing the counters, gauges and IDs cost
+    p50 33 us (each Python object touched after ~10 ms asleep is a cache miss). The server
+    reads only the published area, which the loop writes only when asked (one question
+    outstanding at a time, see StatsServer), so what it reads is one instant of the loop.
+    The histograms are single: hdrh counts into them in place; ``ticks_live`` lets the
+    server check that its copy holds no tick after the published one (SnapshotSource)."""
+
+    def __init__(self, layout: StatsLayout = StatsLayout(), fd: int | None = None,
+                 private: bool = False) -> None:
         self.layout = layout
         self.counts_len = new_histogram().counts_len
+        numbers = [("counters", np.int64, (len(COUNTERS),)),
+                   ("gauges", np.float64, (len(GAUGES),)),
+                   # (id, count) per CAN ID; the first: (-1, frames of the IDs not kept)
+                   ("rx_ids", np.int64, (RX_IDS_KEPT + 1, 2))]
         sections = [("sequence", np.int64, (2,)),  # [requested, answered]: see StatsServer
                     ("histograms", np.uint64, (len(HISTOGRAMS), self.counts_len)),
-                    ("counters", np.int64, (len(COUNTERS),)),
-                    ("gauges", np.float64, (len(GAUGES),)),
-                    ("decode", np.int64, (len(layout.rows), len(layout.columns))),
-                    ("rx_ids", np.int64, (RX_IDS_KEPT + 1, 2))]  # (id, count); last: rest
+                    *[("live_" + name, dtype, shape) for name, dtype, shape in numbers],
+                    *numbers,  # published
+                    ("decode", np.int64, (len(layout.rows), len(layout.columns)))]
         size = sum(8 * int(np.prod(shape)) for _, _, shape in sections)
-        self.fd = os.memfd_create("slipd-stats", os.MFD_CLOEXEC) if fd is None else fd
-        if fd is None:
-            os.ftruncate(self.fd, size)
-        self.memory = mmap.mmap(self.fd, size)
+        if private:
+            self.fd = None
+            self.memory = mmap.mmap(-1, size)
+        else:
+            self.fd = os.memfd_create("slipd-stats", os.MFD_CLOEXEC) if fd is None else fd
+            if fd is None:
+                os.ftruncate(self.fd, size)
+            self.memory = mmap.mmap(self.fd, size)
         offset = 0
         offsets = {}
         for name, dtype, shape in sections:
@@ -149,22 +196,40 @@ class SharedStats:
             setattr(self, name, view.reshape(shape))
             offsets[name] = offset
             offset += 8 * count
-        # publish() writes with as few calls as it can (it runs in the loop, on cold caches:
-        # each numpy call there cost ~10 us measured): counters and gauges are adjacent, one
-        # struct.pack_into; the decode table one buffer copy; the CAN IDs one pack_into
-        self._numbers = struct.Struct(f"={len(COUNTERS)}q{len(GAUGES)}d")
-        self._numbers_at = offsets["counters"]
         view = memoryview(self.memory)
         #: [requested, answered] as Python ints without a numpy call: the loop reads it
         #: every tick (~50 ns)
         self.sequence_words = view[:16].cast("q")
-        self._decode_bytes = view[offsets["decode"]:offsets["rx_ids"]]
-        self._rx_at = offsets["rx_ids"]
-        self._rx_structs: dict[int, struct.Struct] = {}
-        self._rx_used = 0  # entries that may hold an ID
-        self._rx_rest = struct.Struct("=qq")
+        live, published = offsets["live_counters"], offsets["counters"]
+        self.counter_words = view[live:offsets["live_gauges"]].cast("q")
+        self.gauge_words = view[offsets["live_gauges"]:offsets["live_rx_ids"]].cast("d")
+        self.rx_words = view[offsets["live_rx_ids"]:published].cast("q")
+        self._live, self._published = view[live:published], view[published:]
+        self._head = offsets["live_rx_ids"] - live + 16  # counters, gauges, the rest entry
+        self._live_used = self._published_used = None
+        self.rx_kept = 0  # IDs with an entry
+        self._decode_bytes = view[offsets["decode"]:]
+        self._decode_source: np.ndarray | None = None
+        self._decode_view: memoryview | None = None
         if fd is None:
-            self.rx_ids[:, 0] = -1  # no ID yet (0 is one)
+            self.live_rx_ids[:, 0] = -1  # no ID yet (0 is one)
+            self.rx_ids[:, 0] = -1
+        self._use_prefix()
+
+    def _use_prefix(self) -> None:
+        """The views publish() copies: the live area up to the last ID with an entry."""
+        end = self._head + 16 * self.rx_kept
+        self._live_used, self._published_used = self._live[:end], self._published[:end]
+
+    def rx_slot(self, frame_id: int) -> int:
+        """The index in ``rx_words`` of ``frame_id``'s count: a new entry while fewer than
+        RX_IDS_KEPT IDs have one, else the rest's. The caller remembers it."""
+        if self.rx_kept == RX_IDS_KEPT:
+            return 1
+        self.rx_kept += 1
+        self.rx_words[2 * self.rx_kept] = frame_id
+        self._use_prefix()
+        return 2 * self.rx_kept + 1
 
     def counts(self, index: int) -> np.ndarray:
         """A numpy view of histogram ``index``'s counts (no copy)."""
@@ -177,31 +242,26 @@ class SharedStats:
             self.histograms[index])
         return h
 
-    def publish(self, counters: dict[str, int], gauges: tuple[float, ...],
-                decode: np.ndarray | None, rx_per_id: dict[int, int]) -> None:
-        """The loop's part of a snapshot: copy its counters into the block (microseconds).
-        ``counters`` in COUNTERS' order (Stats makes it so); ``decode`` C-contiguous int64
-        of the layout's shape, or None."""
-        self._numbers.pack_into(self.memory, self._numbers_at, *counters.values(), *gauges)
-        if decode is not None and decode.nbytes == len(self._decode_bytes):
-            self._decode_bytes[:] = memoryview(decode).cast("B")
-        items = rx_per_id.items()
-        if len(items) > RX_IDS_KEPT:
-            kept = list(items)[:RX_IDS_KEPT]
-            rest = sum(count for _, count in list(items)[RX_IDS_KEPT:])
-        else:
-            kept, rest = items, 0
-        flat = [value for item in kept for value in item]
-        flat += [-1, 0] * (RX_IDS_KEPT - len(kept)) if self._rx_used > len(kept) else []
-        self._rx_used = len(kept)
-        layout = self._rx_structs.get(len(flat))
-        if layout is None:
-            layout = self._rx_structs[len(flat)] = struct.Struct(f"={len(flat)}q")
-        layout.pack_into(self.memory, self._rx_at, *flat)
-        self._rx_rest.pack_into(self.memory, self._rx_at + 16 * RX_IDS_KEPT, -1, rest)
+    def publish(self, decode: np.ndarray | None) -> None:
+        """The loop's part of a snapshot: the live area's used prefix into the published
+        area, and ``decode`` (C-contiguous int64 of the layout's shape, or None) beside it:
+        two buffer copies (~1 KB), whatever the counters and IDs."""
+        self._published_used[:] = self._live_used
+        if decode is not self._decode_source:  # once: the codec keeps its array
+            self._decode_source = decode
+            self._decode_view = None
+            if decode is not None and decode.nbytes == len(self._decode_bytes):
+                self._decode_view = memoryview(decode).cast("B")
+        if self._decode_view is not None:
+            self._decode_bytes[:] = self._decode_view
 
-    def read(self) -> dict:
-        """The block's counters as the snapshot shows them (the stats server's side)."""
+    def ticks_live(self) -> int:
+        """The loop's tick count now (the live area; the server's consistency check)."""
+        return int(self.live_counters[COUNTERS.index("ticks")])
+
+    def read(self, live: bool = False) -> dict:
+        """The counters as the snapshot shows them: the published area (the stats server's
+        side) or the live one (the loop's own snapshot)."""
         layout = self.layout
         decode = self.decode.copy()
         decode_errors = {}
@@ -209,14 +269,16 @@ class SharedStats:
             columns = layout.only.get(message, layout.columns)
             decode_errors[message] = {c: int(decode[row, layout.columns.index(c)])
                                       for c in columns}
-        rx = self.rx_ids.copy()
-        used = rx[:RX_IDS_KEPT][rx[:RX_IDS_KEPT, 0] >= 0]
+        counters, gauges, rx = ((self.live_counters, self.live_gauges, self.live_rx_ids)
+                                if live else (self.counters, self.gauges, self.rx_ids))
+        rx = rx.copy()
+        used = rx[1:][rx[1:, 0] >= 0]
         rx_per_id = {f"{int(i):#x}": int(n) for i, n in sorted(map(tuple, used))}
-        if rx[RX_IDS_KEPT, 1]:
-            rx_per_id["other"] = int(rx[RX_IDS_KEPT, 1])
-        gauges = dict(zip(GAUGES, self.gauges.tolist(), strict=True))
+        if rx[0, 1]:
+            rx_per_id["other"] = int(rx[0, 1])
+        gauges = dict(zip(GAUGES, gauges.tolist(), strict=True))
         gauges["status"] = int(gauges["status"])
-        return {"counters": dict(zip(COUNTERS, self.counters.tolist(), strict=True)),
+        return {"counters": dict(zip(COUNTERS, counters.tolist(), strict=True)),
                 "rx_per_id": rx_per_id, "decode_errors": decode_errors, **gauges}
 
 
@@ -247,20 +309,28 @@ def clear(h: HdrHistogram) -> None:
 
 @dataclass
 class Stats:
+    """The loop's statistics, kept in a :class:`SharedStats` block (private memory unless
+    made :meth:`in_shared_memory` for a stats server): ``counters`` by name, the histograms,
+    :meth:`count_frame` per received frame, :meth:`set_gauges` once a tick."""
+
     shared: SharedStats | None = None
     histograms: dict[str, HdrHistogram] = field(default_factory=dict)
     interval: HdrHistogram = field(default_factory=new_histogram)  # cycle latency, last second
-    counters: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
-    rx_per_id: dict[int, int] = field(default_factory=dict)
     decode_errors: dict[str, dict[str, int]] = field(default_factory=dict)
     interval_misses: int = 0
     interval_timeouts: int = 0
     interval_rx_errors: int = 0
+    counters: SharedCounters = field(init=False)
 
     def __post_init__(self) -> None:
+        if self.shared is None:
+            self.shared = SharedStats(private=True)
         if not self.histograms:
-            self.histograms = {name: (self.shared.attach(i) if self.shared else new_histogram())
-                               for i, name in enumerate(HISTOGRAMS)}
+            self.histograms = {name: self.shared.attach(i) for i, name in enumerate(HISTOGRAMS)}
+        self.counters = SharedCounters(self.shared.counter_words)
+        self._rx_words = self.shared.rx_words
+        self._rx_slots: dict[int, int] = {}  # CAN ID -> its count's index in _rx_words
+        self._gauges = self.shared.gauge_words
         histogram_table()  # built now, not in the loop's first use of it
 
     @classmethod
@@ -270,18 +340,39 @@ class Stats:
     def record(self, name: str, value_us: float) -> None:
         self.histograms[name].record_value(min(max(1, int(value_us)), HISTOGRAM_HIGHEST))
 
-    def publish(self, gauges: tuple[float, ...], decode: np.ndarray | None,
-                text: dict | None) -> bytes:
-        """The loop's answer to the stats server: counters into the shared block, and the
-        bytes to send besides (``text`` as JSON, the part that is not numbers)."""
-        self.shared.publish(self.counters, gauges, decode, self.rx_per_id)
+    def count_frame(self, frame_id: int) -> None:
+        """One received frame of ``frame_id`` (frames per CAN ID; the first RX_IDS_KEPT IDs
+        one by one, the rest summed)."""
+        slot = self._rx_slots.get(frame_id)
+        if slot is None:
+            slot = self._rx_slots[frame_id] = self.shared.rx_slot(frame_id)
+        self._rx_words[slot] += 1
+
+    @property
+    def rx_per_id(self) -> dict[int, int]:
+        """Frames per CAN ID counted so far (IDs beyond RX_IDS_KEPT are not listed)."""
+        words = self._rx_words
+        return {frame_id: words[slot] for frame_id, slot in self._rx_slots.items()
+                if slot != 1}
+
+    def set_gauges(self, status: float, beta_deg: float, vx_mps: float,
+                   uptime_s: float) -> None:
+        """The latest values of GAUGES (the loop, once a tick after its frames are out)."""
+        gauges = self._gauges
+        gauges[0], gauges[1], gauges[2], gauges[3] = status, beta_deg, vx_mps, uptime_s
+
+    def publish(self, decode: np.ndarray | None, text: dict | None) -> bytes:
+        """The loop's answer to the stats server: its numbers into the block's published
+        area (SharedStats.publish, two buffer copies), and the bytes to send besides
+        (``text`` as JSON, the part that is not numbers)."""
+        self.shared.publish(decode)
         return json.dumps(text).encode() if text else b""
 
     def snapshot(self, extra: dict | None = None) -> dict:
         """The whole snapshot in this process (the end of a run, tests): the stats server
         builds the same document from the shared block."""
-        result = {"counters": dict(self.counters),
-                  "rx_per_id": {f"{k:#x}": v for k, v in sorted(self.rx_per_id.items())},
+        live = self.shared.read(live=True)
+        result = {"counters": live["counters"], "rx_per_id": live["rx_per_id"],
                   "decode_errors": self.decode_errors}
         if extra:
             result.update(extra)
@@ -367,7 +458,7 @@ class StatsServer:
     that once, before the loop starts. Requests and answers are two numbers in the shared
     block (``sequence``: requested, answered): the server raises ``requested``; the loop's
     ``poll``, every tick, compares it with what it last answered (a memory read, no system
-    call) and when they differ publishes its counters into the block and sets ``answered``
+    call) and when they differ publishes its numbers in the block and sets ``answered``
     (the server polls it). The pair carries only what is not a number, and only when it
     changed (the loop's words: events, recorder status). Measured on this project's VMs, a
     socket round trip cost the loop p50 64 us in the running daemon (cold caches after
@@ -397,7 +488,7 @@ class StatsServer:
         self._restarted = False
         self.enabled = bool(unix_path or prometheus)
         if self.enabled:
-            if stats.shared is None:
+            if stats.shared.fd is None:
                 raise ValueError("the stats server needs Stats.in_shared_memory()")
             self._sequence = stats.shared.sequence_words
             self._start()
@@ -450,7 +541,7 @@ class StatsServer:
 
     def poll(self, publish: Callable[[bool], bytes]) -> int:
         """Answer the server's request, if it made one since the last answer: ``publish(
-        fresh)`` copies the loop's counters into the shared block and returns the words to
+        fresh)`` publishes the loop's numbers in the shared block and returns the words to
         send besides (JSON, or b"" when they did not change; ``fresh``: the server is new).
         Returns 1 when it answered. Never blocks; no system call unless there are words."""
         if not self._ready:

@@ -25,6 +25,7 @@ import argparse
 import contextlib
 import json
 import os
+import select
 import signal
 import socket
 import socketserver
@@ -50,6 +51,7 @@ from slipd.errors import ConfigError
 
 SHARE_AGE_S = 0.02  # a snapshot at most this old is given to a new client as is
 LOOP_PATIENCE_S = 1.0  # how long a client waits for the loop's answer
+CONSISTENT_ATTEMPTS = 5  # answers asked for until the histograms' copy missed no tick
 
 COUNTER_HELP = {
     "ticks": "ticks run (100 Hz)",
@@ -92,6 +94,7 @@ class SnapshotSource:
         self.latest: dict | None = None
         self.latest_at = -1.0
         self.wanted = threading.Event()
+        self.reading = threading.Lock()  # the control socket: one reader at a time
         threading.Thread(target=self._collect, daemon=True).start()
 
     def get(self) -> dict:
@@ -112,38 +115,65 @@ class SnapshotSource:
                                "stalled)")
 
     def _collect(self) -> None:
-        sequence = self.shared.sequence_words
         while True:
             self.wanted.wait()
             self.wanted.clear()
-            target = sequence[0] + 1
-            sequence[0] = target  # the loop answers in its slack after the next tick
-            deadline = time.monotonic() + LOOP_PATIENCE_S
-            while sequence[1] != target and time.monotonic() < deadline:
-                time.sleep(self.ANSWER_POLL_S)
-            if sequence[1] != target:
-                continue  # the loop is stalled (or stopped): clients get the stale one
-            self._drain_words()
-            document = {**self.shared.read(), **self.words}
-            for index, name in enumerate(HISTOGRAMS):
-                counts = self.shared.counts(index).astype(np.int64)
-                document[name] = self.table.summary(counts)
+            document = None
+            for _attempt in range(CONSISTENT_ATTEMPTS):
+                if not self._ask_loop():
+                    break  # the loop is stalled (or stopped): clients get the stale one
+                document, consistent = self._build()
+                if consistent:
+                    break
+            if document is None:
+                continue
             with self.changed:
                 self.latest = document
                 self.latest_at = time.monotonic()
                 self.changed.notify_all()
 
+    def _ask_loop(self) -> bool:
+        """Ask the loop to publish its numbers; True once it has (within LOOP_PATIENCE_S)."""
+        sequence = self.shared.sequence_words
+        target = sequence[0] + 1
+        sequence[0] = target  # the loop answers in its slack after the next tick
+        deadline = time.monotonic() + LOOP_PATIENCE_S
+        while sequence[1] != target and time.monotonic() < deadline:
+            time.sleep(self.ANSWER_POLL_S)
+        return sequence[1] == target
+
+    def _build(self) -> tuple[dict, bool]:
+        """The snapshot from the published numbers and the histograms, and whether it is
+        one instant: the histograms, which the loop records into in place, are copied
+        before its next tick (the live tick count is still the published one), so they
+        hold exactly the ticks counted."""
+        self._drain_words()
+        document = {**self.shared.read(), **self.words}
+        counts = [self.shared.counts(index).astype(np.int64)
+                  for index in range(len(HISTOGRAMS))]
+        # the loop counts a tick before it records the tick's values (Daemon._measure), and
+        # x86 keeps stores in order and loads in order: a record seen in the copy means the
+        # tick count read after it is ahead (weakly ordered CPUs give no such promise
+        # without a fence, which Python cannot issue: there the check is best effort)
+        consistent = self.shared.ticks_live() == document["counters"]["ticks"]
+        for name, histogram in zip(HISTOGRAMS, counts, strict=True):
+            document[name] = self.table.summary(histogram)
+        return document, consistent
+
     def _drain_words(self) -> None:
-        """Words the loop sent with this answer (it sends them before it sets answered);
-        the main thread may have read them first (run), either stores them."""
-        while True:
-            try:
-                message = self.control.recv(1 << 22, socket.MSG_DONTWAIT)
-            except OSError:  # BlockingIOError: none waiting
-                return
-            if not message:
-                return
-            self._store_words(message)
+        """Words the loop sent with this answer (it sends them before it sets answered).
+        The main thread (run) may be reading them at the same time: under ``reading``
+        either has stored them before the snapshot is built (a snapshot without the
+        estimator's name was served when run had received them and not yet stored them)."""
+        with self.reading:
+            while True:
+                try:
+                    message = self.control.recv(1 << 22, socket.MSG_DONTWAIT)
+                except OSError:  # BlockingIOError: none waiting
+                    return
+                if not message:
+                    return
+                self._store_words(message)
 
     def _store_words(self, message: bytes) -> None:
         words = json.loads(message)
@@ -154,14 +184,21 @@ class SnapshotSource:
         """Read the loop's words until the daemon closes the control socket (or dies)."""
         while True:
             try:
-                message = self.control.recv(1 << 22)
+                select.select([self.control], [], [])
             except InterruptedError:
                 continue
-            except OSError:
+            except (OSError, ValueError):
                 return
-            if not message:
-                return
-            self._store_words(message)
+            with self.reading:
+                try:
+                    message = self.control.recv(1 << 22, socket.MSG_DONTWAIT)
+                except (BlockingIOError, InterruptedError):
+                    continue  # the collector took them
+                except OSError:
+                    return
+                if not message:
+                    return
+                self._store_words(message)
 
 
 class UnixStatsServer(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
