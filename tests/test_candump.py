@@ -290,6 +290,16 @@ def test_skip_bad_keeps_exact_timestamps_of_long_lines_after_bad_ones(tmp_path):
     assert frames.t.tolist() == [1700000000.123456789, 7.5]
 
 
+def test_more_long_timestamps_than_the_kernel_keeps_are_all_exact(tmp_path):
+    """The kernel keeps the first 64 frames whose timestamp it cannot convert exactly (19+
+    digits: nanoseconds); a block with more is parsed again with room for all of them."""
+    stamps = [f"1700000000.{k:09d}" for k in range(0, 300_000_000, 1_000_003)]
+    lines = [f"({s}) can0 101#{k % 256:02X}" for k, s in enumerate(stamps)]
+    frames = read_candump(write_lines(tmp_path / "nanoseconds.log", lines))
+    assert len(stamps) > 64 and frames.t.tolist() == [float(s) for s in stamps]
+    assert frames.line.tolist() == list(range(1, len(lines) + 1))
+
+
 def test_missing_file_and_unknown_format(tmp_path):
     with pytest.raises(LogFormatError, match="no such file"):
         read_candump(tmp_path / "absent.log")
@@ -412,8 +422,10 @@ def test_one_pass_scan_reads_what_the_general_stages_read(lines, final):
     buf = np.frombuffer(text, dtype=np.uint8)
     general = parse_candump(buf, "x.log", skip_bad=True, one_pass=False)
     fast = parse_candump(buf, "x.log", skip_bad=True, one_pass=True)
+    counted = parse_candump(buf, "x.log", skip_bad=True, newlines=text.count(b"\n"))
     for name in ("t", "frame_id", "flags", "dlc", "data", "channel", "line"):
         assert np.array_equal(getattr(fast, name), getattr(general, name)), name
+        assert np.array_equal(getattr(counted, name), getattr(general, name)), name
     assert fast.channels == general.channels
     assert (fast.bad_lines, fast.bad_line_numbers) == (general.bad_lines,
                                                        general.bad_line_numbers)

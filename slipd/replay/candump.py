@@ -393,12 +393,14 @@ def _scan_plain_line(buf, pos, width, row, data_out):
 
 @nb.njit(cache=True, nogil=True)
 def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, chan_out,
-           line_out, chan_table, bad_out, fallback_out, one_pass=True):
+           line_out, chan_table, bad_out, fallback_out, line_shift=0, one_pass=True):
     """Parse every line; returns (n_frames, n_bad, first_error_line, error_code, n_channels,
-    needed_width). ``chan_table`` [MAX_CHANNELS, 2] holds (offset, length) of each distinct
-    channel name. ``line_out`` gets each frame's line number. ``fallback_out`` holds, per
-    frame, the line number of a timestamp with too many digits to parse exactly here (Python
-    re-parses those lines), else 0."""
+    needed_width, n_fallback). ``chan_table`` [MAX_CHANNELS, 2] holds (offset, length) of
+    each distinct channel name. ``line_out`` gets each frame's line number plus
+    ``line_shift`` (the line before ``buf`` in its log). ``fallback_out`` gets the first
+    frames (indices) whose timestamp has too many digits to parse exactly here (Python
+    re-parses those lines; ``n_fallback`` counts them all, a caller with a short array parses
+    again with a longer one). Error frames get python-can's dlc 0 and no data bytes here."""
     n = buf.shape[0]
     pos = 0
     line_no = 0
@@ -409,6 +411,7 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
     last_chan = -1
     last_start = 0
     last_len = 0
+    n_fallback = 0
     while pos < n:
         line_no += 1
         flags = 0
@@ -453,7 +456,7 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
             last_chan, last_start, last_len = chan_index, chan_start, chan_len
         if code != 0:
             if not skip_bad:
-                return count, n_bad, line_no, code, n_chan, needed
+                return count, n_bad, line_no, code, n_chan, needed, n_fallback
             if n_bad < bad_out.shape[0]:
                 bad_out[n_bad] = line_no
             n_bad += 1
@@ -477,14 +480,21 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
         exact = digits + frac_digits <= 18 and (int_part * _POW10_INT[frac_digits] + frac
                                                 ) < 2**53
         t_out[count] = (int_part * scale + frac) / scale if exact else approx
-        fallback_out[count] = 0 if exact else line_no
+        if not exact:
+            if n_fallback < fallback_out.shape[0]:
+                fallback_out[n_fallback] = count
+            n_fallback += 1
+        if flags & FLAG_ERROR:  # python-can keeps no length or data of an error frame
+            length = 0
+            for j in range(width):
+                data_out[count, j] = 0
         id_out[count] = can_id
         flags_out[count] = flags
         dlc_out[count] = length
         chan_out[count] = chan_index
-        line_out[count] = line_no
+        line_out[count] = line_no + line_shift
         count += 1
-    return count, n_bad, 0, 0, n_chan, needed
+    return count, n_bad, 0, 0, n_chan, needed, n_fallback
 
 
 @nb.njit(cache=True, nogil=True)
@@ -512,14 +522,6 @@ def _load_bytes(path: Path) -> tuple[np.ndarray, object]:
     return np.frombuffer(mapped, dtype=np.uint8), mapped
 
 
-def _error_frame_fixups(frames: Frames) -> None:
-    """python-can's reader gives error frames dlc 0 and no data bytes; mirror that."""
-    error = (frames.flags & FLAG_ERROR) != 0
-    if error.any():
-        frames.dlc[error] = 0
-        frames.data[error] = 0
-
-
 def read_candump(path: str | Path, skip_bad: bool = False) -> Frames:
     """Read a ``candump -L`` log (optionally ``.gz``) into :class:`Frames`."""
     path = Path(path)
@@ -539,48 +541,49 @@ def read_candump(path: str | Path, skip_bad: bool = False) -> Frames:
 
 
 def parse_candump(buf: np.ndarray, source: str, skip_bad: bool = False,
-                  first_line: int = 1, one_pass: bool = True) -> Frames:
+                  first_line: int = 1, one_pass: bool = True,
+                  newlines: int | None = None) -> Frames:
     """The frames of the whole ``candump -L`` lines in ``buf`` (uint8). ``first_line`` is the
     line number of ``buf``'s first line in ``source`` (a piece of a longer log, read in
     chunks by slipd.replay.stream), so errors and skipped lines name the log's own lines.
     Channel indices are this piece's own, in order of first appearance. ``one_pass`` False
-    skips the one-pass scan of the common line (tests: the two read the same frames)."""
-    n_lines = int(count_newlines(buf)) + 1
+    skips the one-pass scan of the common line (tests: the two read the same frames).
+    ``newlines``: ``count_newlines(buf)`` when the caller has counted them already."""
+    n_lines = int(count_newlines(buf) if newlines is None else newlines) + 1
     width = 8
     shift = first_line - 1
+    fallback = np.zeros(64, dtype=np.int64)
     while True:
-        t = np.zeros(n_lines)
-        ids = np.zeros(n_lines, dtype=np.int64)
-        flags = np.zeros(n_lines, dtype=np.uint8)
-        dlc = np.zeros(n_lines, dtype=np.uint8)
+        t = np.empty(n_lines)
+        ids = np.empty(n_lines, dtype=np.int64)
+        flags = np.empty(n_lines, dtype=np.uint8)
+        dlc = np.empty(n_lines, dtype=np.uint8)
         data = np.zeros((n_lines, width), dtype=np.uint8)
-        chan = np.zeros(n_lines, dtype=np.uint8)
-        line = np.zeros(n_lines, dtype=np.int64)
+        chan = np.empty(n_lines, dtype=np.uint8)
+        line = np.empty(n_lines, dtype=np.int64)
         chan_table = np.zeros((MAX_CHANNELS, 2), dtype=np.int64)
         bad = np.zeros(100, dtype=np.int64)
-        fallback = np.zeros(n_lines, dtype=np.int64)
-        count, n_bad, err_line, err_code, n_chan, needed = _parse(
+        count, n_bad, err_line, err_code, n_chan, needed, n_fallback = _parse(
             buf, width, skip_bad, t, ids, flags, dlc, data, chan, line, chan_table, bad,
-            fallback, one_pass)
+            fallback, shift, one_pass)
         if err_code:
             text = bytes(_line_text(buf, err_line)).decode("utf-8", "replace")
             raise LogFormatError(
                 f"{source}:{err_line + shift}: {ERROR_REASONS.get(err_code, 'malformed line')}: "
                 f"{text!r} (use --skip-bad to count and skip such lines)"
             )
-        if needed <= width:
+        if needed <= width and n_fallback <= len(fallback):
             break
-        width = 64
+        width = 64 if needed > width else width
+        fallback = np.zeros(max(n_fallback, len(fallback)), dtype=np.int64)
     names = [bytes(buf[o:o + n]).decode("ascii", "replace") for o, n in chan_table[:n_chan]]
-    if fallback[:count].any():
+    if n_fallback:
         line_starts = np.concatenate(([0], np.flatnonzero(buf == 10) + 1))
-        for index in np.flatnonzero(fallback[:count]):
-            t[index] = _python_timestamp(buf, line_starts, int(fallback[index]))
-    frames = Frames(t[:count], ids[:count], flags[:count], dlc[:count], data[:count],
-                    chan[:count], names, source, int(n_bad),
-                    [int(x) + shift for x in bad[:min(n_bad, 100)]], line[:count] + shift)
-    _error_frame_fixups(frames)
-    return frames
+        for index in fallback[:n_fallback]:
+            t[index] = _python_timestamp(buf, line_starts, int(line[index]) - shift)
+    return Frames(t[:count], ids[:count], flags[:count], dlc[:count], data[:count],
+                  chan[:count], names, source, int(n_bad),
+                  [int(x) + shift for x in bad[:min(n_bad, 100)]], line[:count])
 
 
 def _line_text(buf: np.ndarray, line_no: int) -> np.ndarray:
