@@ -168,6 +168,33 @@ def test_line_blocks_keep_a_ring_of_buffers_valid(codec_drives, tmp_path):
         assert b"".join(copies) == whole and len(copies) > 3
 
 
+def test_methods_sharing_a_witness_step_it_once(profile, codec_drives, monkeypatch):
+    """d_ekf is every other method's consistency witness and a method itself: one replay
+    steps it once per tick (RawRuns), and every method's rows are those of its own Pipeline
+    run alone."""
+    log = codec_drives["mu_jump"].log
+    methods = ["kinematic_heuristic", "d_ekf", "zero", "k_kf"]
+    inputs, outs = whole_run(log, profile, methods)
+    runs = []
+    original = Pipeline._run_method
+    monkeypatch.setattr(Pipeline, "_run_method", lambda self, method, *args: (
+        runs.append(method.spec.name), original(self, method, *args))[1])
+    stream = LogStream(log, profile, methods, chunk_bytes=1 << 16)
+    chunks = list(stream)
+    for m in methods:
+        streamed = np.concatenate([c.outputs[m] for c in chunks])
+        assert np.array_equal(streamed, outs[m], equal_nan=True), m
+    ticked = [c for c in chunks if len(c.inputs.t)]
+    # per chunk: the four methods, d_ekf (shared with its role as the witness) and linear_kf
+    # (d_ekf's own witness): 5 runs, not 4 + 4 witnesses
+    assert sorted(runs) == sorted(["kinematic_heuristic", "d_ekf", "zero", "k_kf",
+                                   "linear_kf"] * len(ticked))
+    # d_ekf with other params is not the witness
+    witness = Pipeline("kinematic_heuristic", profile).witness_key
+    assert Pipeline("d_ekf", profile).method_key == witness
+    assert Pipeline("d_ekf", profile, {"r_vx": 3e-3}).method_key != witness
+
+
 def load(name):
     from slipd.profile import load_profile
 

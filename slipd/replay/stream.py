@@ -46,7 +46,7 @@ import numpy as np
 from slipd.channels import N_OUT, U_LEN
 from slipd.codec import Codec, kernels
 from slipd.errors import ConfigError, LogFormatError
-from slipd.pipeline import TICK_DT, Pipeline, steps_per_tick
+from slipd.pipeline import TICK_DT, Pipeline, RawRuns, steps_per_tick
 from slipd.profile import Profile, load_profile
 from slipd.replay.ahead import ahead, ahead_map
 from slipd.replay.candump import (
@@ -483,12 +483,15 @@ class MethodRuns:
         self.pipelines = {name: built.get(name) or Pipeline(name, profile, overrides, dt)
                           for name in methods}
         self.states = {name: p.new_state() for name, p in self.pipelines.items()}
+        #: raw runs more than one method needs (the witness): each made once per chunk
+        self.shared = RawRuns.shared_keys(self.pipelines.values())
 
     def run(self, inputs: Inputs) -> dict[str, np.ndarray]:
         """Each method's supervised outputs [n_ticks, N_OUT] on a chunk's inputs."""
         if not len(inputs.t):
             return {name: np.zeros((0, N_OUT)) for name in self.pipelines}
-        return {name: p.run(inputs.U, inputs.steps, self.states[name])
+        raw = RawRuns(self.shared) if self.shared else None
+        return {name: p.run(inputs.U, inputs.steps, self.states[name], raw)
                 for name, p in self.pipelines.items()}
 
 
