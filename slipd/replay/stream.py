@@ -113,14 +113,14 @@ def line_blocks(path: Path, chunk_bytes: int = CHUNK_BYTES, digest=None, buffers
             end = carry + got
             if got == 0:
                 if carry:
-                    yield buf[:carry], line, int(count_newlines(buf[:carry]))
+                    yield buf[:carry], line, count_newlines(buf[:carry])
                 return
             cut = _after_last_newline(buf, carry, end)
             if cut == 0:  # no line ends in the buffer yet
                 carry = end
                 continue
             block = buf[:cut]
-            newlines = int(count_newlines(block))
+            newlines = count_newlines(block)
             yield block, line, newlines
             line += newlines
             carry = end - cut
