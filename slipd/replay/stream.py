@@ -193,15 +193,16 @@ def frame_chunks(path: str | Path, skip_bad: bool = False, chunk_bytes: int = CH
     base_suffix = suffixes.removesuffix(".gz")
     if base_suffix in readers.CANDUMP_SUFFIXES or base_suffix == "":
         digest = hashlib.sha256() if checksum else None
-        # blocks read here, parsed by PARSE_WORKERS threads (the kernel releases the GIL)
+        # blocks read by a thread of their own and parsed by PARSE_WORKERS threads (the
+        # kernel releases the GIL); the caller (the latch thread) only takes the frames
         blocks = line_blocks(path, chunk_bytes, digest, buffers=PARSE_WORKERS + 2)
 
         def parse(block: tuple[np.ndarray, int, int]) -> Frames:
             text, first_line, newlines = block
             return parse_candump(text, str(path), skip_bad, first_line, newlines=newlines)
 
-        for frames in ahead_map(parse, blocks, PARSE_WORKERS, PARSE_WORKERS + 1,
-                                f"parse {path}"):
+        parsed = ahead_map(parse, blocks, PARSE_WORKERS, PARSE_WORKERS + 1, f"parse {path}")
+        for frames in ahead(parsed, 1, f"read {path}"):
             yield stats.adopt(frames)
         if digest is not None:
             stats.sha256 = digest.hexdigest()
