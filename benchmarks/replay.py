@@ -172,6 +172,74 @@ def profile_replay(log: Path, method: str, out: Path) -> str:
                      if line.strip() and not line.startswith(("   Ordered", "   List")))
 
 
+def stage_profile(log: Path, method: str, tmp: Path, repeats: int) -> str:
+    """Each stage of the streaming replay alone (one thread, wall clock, best of
+    ``repeats``) on the log's chunks, then the end-to-end run's wall clock and CPU time: how
+    far the stages overlap on the machine's cores."""
+    import os
+    import resource
+
+    from slipd.commands.replay import replay_one
+    from slipd.replay import writers
+    from slipd.replay.candump import parse_candump
+    from slipd.replay.stream import Latcher, MethodRuns, ReadStats, line_blocks
+
+    profile = load_profile("default")
+
+    def timed(run):
+        best, result = math.inf, None
+        for _ in range(repeats):
+            started = time.perf_counter()
+            result = run()
+            best = min(best, time.perf_counter() - started)
+        return best, result
+
+    read_s, blocks = timed(lambda: [(b.copy(), line, n) for b, line, n in line_blocks(log)])
+    parse_s, parsed = timed(lambda: [parse_candump(b, str(log), False, line, newlines=n)
+                                     for b, line, n in blocks])
+
+    def latch():
+        stats, latcher = ReadStats(str(log)), Latcher(profile, source=str(log))
+        done = [latcher.feed(stats.adopt(f)) for f in parsed]  # adopt again: the same
+        done.append(latcher.finish())
+        return [d.inputs for d in done if d is not None]
+
+    latch_s, inputs = timed(latch)
+
+    def estimate():
+        runs = MethodRuns(profile, [method])
+        return [runs.run(i)[method] for i in inputs]
+
+    estimate_s, outs = timed(estimate)
+
+    def write(suffix: str):
+        info = writers.RunInfo([method], "default", str(log))
+        with writers.open_writer(tmp / f"stage{suffix}", info) as writer:
+            for i, out in zip(inputs, outs, strict=True):
+                writer.write(method, i.t, out)
+
+    parquet_s, _ = timed(lambda: write(".parquet"))
+    csv_s, _ = timed(lambda: write(".csv"))
+    total = read_s + parse_s + latch_s + estimate_s + parquet_s
+    lines = [f"stages of --estimator {method} --out x.parquet on {log.name}, each alone in one "
+             f"thread (load {os.getloadavg()[0]:.1f}):",
+             f"  read {read_s:.2f} s, parse {parse_s:.2f} s, decode/latch {latch_s:.2f} s, "
+             f"estimate (method + witness + monitor) {estimate_s:.2f} s, write Parquet "
+             f"{parquet_s:.2f} s (CSV {csv_s:.2f} s): {total:.2f} s in sequence"]
+    for _ in range(repeats):
+        before = resource.getrusage(resource.RUSAGE_SELF)
+        started = time.perf_counter()
+        replay_one(log, "default", [method], tmp / "x.parquet", None, False)
+        wall = time.perf_counter() - started
+        after = resource.getrusage(resource.RUSAGE_SELF)
+        (tmp / "x.parquet").unlink()
+        cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        lines.append(f"  end to end: {wall:.2f} s wall, {cpu:.2f} s CPU ({cpu / wall:.2f} "
+                     f"cores busy; the stages in sequence take {total / wall:.2f}x the wall "
+                     f"clock; load {os.getloadavg()[0]:.1f})")
+    return "\n".join(lines)
+
+
 def measure_log(log: Path, mf4: Path, args, tmp: Path) -> dict:
     """Every end-to-end figure of one log (seconds), and its size."""
     profile = load_profile("default")
@@ -220,7 +288,8 @@ def main() -> None:
     parser.add_argument("--random", action="store_true",
                         help="random signal values instead of a simulated drive (no sim extra)")
     parser.add_argument("--profile", action="store_true",
-                        help="print where an end-to-end replay of the long log spends its time")
+                        help="print where an end-to-end replay of the long log spends its time: "
+                             "each stage alone, the overlap, cProfile's top functions")
     args = parser.parse_args()
     profile = load_profile("default")
     with tempfile.TemporaryDirectory() as tmp_name:
@@ -251,6 +320,7 @@ def main() -> None:
         long_figures = measure_log(log, log.with_suffix(".mf4"), args, tmp)
         short_figures = measure_log(short, short.with_suffix(".mf4"), args, tmp)
         if args.profile:
+            print(stage_profile(log, args.estimator, tmp, args.repeats))
             print(profile_replay(log, args.estimator, tmp / "x.parquet"))
         timings = []
         for _ in range(args.repeats):

@@ -78,6 +78,10 @@ class Pipeline:
         witness = WITNESS_OF_WITNESS if method == WITNESS else WITNESS
         self.witness = registry.load(witness) if monitor else None
         self.monitor_params = consistency.default_params(witness == WITNESS_OF_WITNESS)
+        #: what identifies a raw run of the method and of the witness (same kernel, same
+        #: params, same dt: the same outputs on the same ticks), for sharing (``run``'s raw)
+        self.method_key = (method, self.method.params.tobytes(), dt)
+        self.witness_key = (witness, self.witness.params.tobytes(), dt) if monitor else None
         self._method_size = self.method.init(self.vehicle).size
         self._witness_size = self.witness.init(self.vehicle).size if self.witness else 0
         self._witness_out = np.full(N_OUT, np.nan)
@@ -139,25 +143,44 @@ class Pipeline:
                             dt * steps)
 
     def run(self, U: np.ndarray, steps: np.ndarray | None = None,
-            state: np.ndarray | None = None) -> np.ndarray:
+            state: np.ndarray | None = None, raw: RawRuns | None = None) -> np.ndarray:
         """Every tick of a recording (``U``: [n, U_LEN] latched inputs) in one numba loop;
         ``steps``: estimator steps per tick (``steps_per_tick``, None = one each). Returns
-        the supervised, monitored outputs [n, N_OUT]."""
+        the supervised, monitored outputs [n, N_OUT]. ``raw``: the raw runs other pipelines
+        made on these very ticks from the same state (:class:`RawRuns`): a method or witness
+        found there is not run again."""
         state = self.new_state() if state is None else state
         method_state, witness_state, monitor_state = self.parts(state) if self.monitor else (
             state, None, None)
         stepped = U if steps is None else np.repeat(U, steps, axis=0)
-        out = self._run_method(self.method, method_state, stepped, steps)
+        out = self._raw_run(self.method, self.method_key, method_state, stepped, steps, raw)
+        if raw is not None and self.method_key in raw.keys:
+            out = out.copy()  # supervision and the monitor write into it
         supervise_ticks(U, self.supervision, out)
         if not self.monitor:
             return out
         if self.witness is not None:
-            witness_out = self._run_method(self.witness, witness_state, stepped, steps)
+            witness_out = self._raw_run(self.witness, self.witness_key, witness_state, stepped,
+                                        steps, raw)
         else:
             witness_out = np.full((len(U), N_OUT), np.nan)
         tick_dt = np.full(len(U), self.dt) if steps is None else self.dt * steps.astype(float)
         consistency.monitor_ticks(monitor_state, U, out, witness_out, self.monitor_params,
                                   self.vehicle, tick_dt)
+        return out
+
+    def _raw_run(self, method, key, state, stepped, steps, raw: RawRuns | None
+                 ) -> np.ndarray:
+        """The method's raw outputs on the ticks, from ``raw`` (its state set to the one
+        after that run) or run here (and kept in ``raw`` when others want it). The outputs
+        in ``raw`` are only read."""
+        if raw is not None and key in raw.runs:
+            out, after = raw.runs[key]
+            state[:] = after
+            return out
+        out = self._run_method(method, state, stepped, steps)
+        if raw is not None and key in raw.keys:
+            raw.runs[key] = (out, state.copy())
         return out
 
     def _run_method(self, method, state, stepped, steps) -> np.ndarray:
@@ -166,3 +189,27 @@ class Pipeline:
         if steps is not None:  # a tick's output is that of its last step
             out = np.ascontiguousarray(out[np.cumsum(steps) - 1])
         return out
+
+
+class RawRuns:
+    """Raw method runs (outputs before supervision, and the state after) on one run of ticks
+    that several pipelines of one replay need: d_ekf is the consistency witness of every other
+    method and a method of its own, so ``--estimator all`` stepped it 14 times per tick for one
+    result. ``keys``: the ``method_key``/``witness_key`` that more than one role uses (the
+    rest are not kept). Valid for one call of ``Pipeline.run`` per pipeline, all on the same
+    ticks from states that agree on the shared parts (fresh states, or ones that only such
+    runs have advanced)."""
+
+    def __init__(self, keys: set):
+        self.keys = keys
+        self.runs: dict = {}
+
+    @staticmethod
+    def shared_keys(pipelines) -> set:
+        """The method and witness keys of ``pipelines`` that more than one of them uses."""
+        seen: dict = {}
+        for pipeline in pipelines:
+            for key in (pipeline.method_key, pipeline.witness_key):
+                if key is not None:
+                    seen[key] = seen.get(key, 0) + 1
+        return {key for key, count in seen.items() if count > 1}

@@ -29,6 +29,7 @@ from slipd.replay.candump import (
     FLAG_FD,
     FLAG_REMOTE,
     FLAG_TX,
+    count_newlines,
     parse_candump,
     read_candump,
     write_candump,
@@ -290,6 +291,28 @@ def test_skip_bad_keeps_exact_timestamps_of_long_lines_after_bad_ones(tmp_path):
     assert frames.t.tolist() == [1700000000.123456789, 7.5]
 
 
+def test_more_long_timestamps_than_the_kernel_keeps_are_all_exact(tmp_path):
+    """The kernel keeps the first 64 frames whose timestamp it cannot convert exactly (19+
+    digits: nanoseconds); a block with more is parsed again with room for all of them."""
+    stamps = [f"1700000000.{k:09d}" for k in range(0, 300_000_000, 1_000_003)]
+    lines = [f"({s}) can0 101#{k % 256:02X}" for k, s in enumerate(stamps)]
+    frames = read_candump(write_lines(tmp_path / "nanoseconds.log", lines))
+    assert len(stamps) > 64 and frames.t.tolist() == [float(s) for s in stamps]
+    assert frames.line.tolist() == list(range(1, len(lines) + 1))
+
+
+@settings(max_examples=200, deadline=None)
+@given(text=st.binary(max_size=200).map(lambda b: b.replace(b"\x00", b"\n")),
+       newline_heavy=st.booleans(), start=st.integers(0, 9))
+def test_newlines_counted_by_words_are_numpy_s_count(text, newline_heavy, start):
+    """The 8-byte count at every alignment (a slice's start), on every byte value next to
+    newlines (0x0A +- 1, 0x8A: the bits the word trick looks at)."""
+    if newline_heavy:
+        text = bytes(b if b % 3 else 10 for b in text) + b"\x0b\x09\x8a\n"
+    buf = np.frombuffer(bytes(20) + text, dtype=np.uint8)[20 - start:]
+    assert count_newlines(buf) == np.count_nonzero(buf == 10)
+
+
 def test_missing_file_and_unknown_format(tmp_path):
     with pytest.raises(LogFormatError, match="no such file"):
         read_candump(tmp_path / "absent.log")
@@ -409,19 +432,45 @@ def _mutations(draw_line: str, cut: int, junk: str) -> str:
 )
 def test_one_pass_scan_reads_what_the_general_stages_read(lines, final):
     text = ("\n".join(lines) + ("\n" if final else "")).encode("ascii")
+    assert_scans_agree(text)
+
+
+def assert_scans_agree(text: bytes) -> None:
+    """The general stages, the one-pass scan alone and with the known-shape scan (the
+    default) read ``text`` to the same frames, skipped lines and errors."""
     buf = np.frombuffer(text, dtype=np.uint8)
     general = parse_candump(buf, "x.log", skip_bad=True, one_pass=False)
     fast = parse_candump(buf, "x.log", skip_bad=True, one_pass=True)
-    for name in ("t", "frame_id", "flags", "dlc", "data", "channel", "line"):
-        assert np.array_equal(getattr(fast, name), getattr(general, name)), name
-    assert fast.channels == general.channels
-    assert (fast.bad_lines, fast.bad_line_numbers) == (general.bad_lines,
-                                                       general.bad_line_numbers)
-    errors = []
-    for one_pass in (False, True):
+    plain = parse_candump(buf, "x.log", skip_bad=True, known_shape=False)
+    counted = parse_candump(buf, "x.log", skip_bad=True, newlines=text.count(b"\n"))
+    for other in (fast, plain, counted):
+        for name in ("t", "frame_id", "flags", "dlc", "data", "channel", "line"):
+            assert np.array_equal(getattr(other, name), getattr(general, name)), name
+        assert other.channels == general.channels
+        assert (other.bad_lines, other.bad_line_numbers) == (general.bad_lines,
+                                                             general.bad_line_numbers)
+    errors = set()
+    for one_pass, known_shape in ((False, False), (True, False), (True, True)):
         try:
-            parse_candump(buf, "x.log", one_pass=one_pass)
-            errors.append(None)
+            parse_candump(buf, "x.log", one_pass=one_pass, known_shape=known_shape)
+            errors.add(None)
         except LogFormatError as exc:
-            errors.append(str(exc))
-    assert errors[0] == errors[1]
+            errors.add(str(exc))
+    assert len(errors) == 1
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    base=st.builds("{} {} {}#{}".format, timestamps(), channel_names,
+                   st.sampled_from(["123", "7FF", "800", "1ABCDEF0", "3FFFFFFF", "1234"]),
+                   st.binary(max_size=9).map(bytes.hex)),
+    changes=st.lists(st.tuples(st.integers(0, 60), st.sampled_from(
+        ["", "", " ", "\t", "\r", "0", "9", "A", "g", "#", "R", ")", ".", "(", "\x00", "00",
+         "12345678", "\r\n", "\n"])), min_size=1, max_size=25),
+    final=st.booleans(),
+)
+def test_the_known_shape_scan_reads_what_the_general_stages_read(base, changes, final):
+    """Runs of one line's shape, each copy changed by a byte or a few at any place: the
+    known-shape scan (lines shaped as the one before) hands every near miss on."""
+    lines = [base] + [_mutations(base, cut, junk) for cut, junk in changes]
+    assert_scans_agree(("\n".join(lines) + ("\n" if final else "")).encode("ascii"))

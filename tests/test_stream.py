@@ -22,7 +22,7 @@ from slipd.replay import outputs, textformat, writers
 from slipd.replay.candump import read_candump, write_candump
 from slipd.replay.engine import Estimate, latch_log_or_recording
 from slipd.replay.readers import read_frames
-from slipd.replay.stream import LogStream, joined_inputs
+from slipd.replay.stream import LogStream, joined_inputs, line_blocks
 
 #: chunk sizes in bytes: a few lines, a few hundred lines, the whole log
 CHUNKS = (1 << 12, 1 << 16, 1 << 30)
@@ -146,6 +146,53 @@ def test_cli_files_do_not_depend_on_the_chunk(codec_drives, tmp_path, monkeypatc
     write_candump(reference, merged.t, merged.frame_id, merged.data, merged.dlc,
                   flags=merged.flags, channel=merged.channel, channels=frames.channels + ["slipd"])
     assert files["small", "candump"] == reference.read_bytes()
+
+
+def test_line_blocks_keep_a_ring_of_buffers_valid(codec_drives, tmp_path):
+    """The parallel parse holds blocks while later ones are read: with a ring of k buffers a
+    block stays as it was until k more have been read; the blocks are the file's lines,
+    numbered, whatever the ring."""
+    text = codec_drives["mu_jump"].log.read_bytes()
+    path = tmp_path / "long_line.log"
+    path.write_bytes(text[:5000] + b"(1.0) can0 " + b"1" * 9000 + b"\n" + text[5000:60_000])
+    whole = path.read_bytes()
+    for buffers in (1, 3, 4):
+        held, copies = [], []
+        for block, first_line, newlines in line_blocks(path, 1 << 12, buffers=buffers):
+            assert first_line == whole.count(b"\n", 0, sum(map(len, copies))) + 1
+            assert newlines == bytes(block).count(b"\n")
+            held.append(block)
+            copies.append(bytes(block))
+            for old, copy in zip(held[-buffers:], copies[-buffers:], strict=True):
+                assert bytes(old) == copy
+        assert b"".join(copies) == whole and len(copies) > 3
+
+
+def test_methods_sharing_a_witness_step_it_once(profile, codec_drives, monkeypatch):
+    """d_ekf is every other method's consistency witness and a method itself: one replay
+    steps it once per tick (RawRuns), and every method's rows are those of its own Pipeline
+    run alone."""
+    log = codec_drives["mu_jump"].log
+    methods = ["kinematic_heuristic", "d_ekf", "zero", "k_kf"]
+    inputs, outs = whole_run(log, profile, methods)
+    runs = []
+    original = Pipeline._run_method
+    monkeypatch.setattr(Pipeline, "_run_method", lambda self, method, *args: (
+        runs.append(method.spec.name), original(self, method, *args))[1])
+    stream = LogStream(log, profile, methods, chunk_bytes=1 << 16)
+    chunks = list(stream)
+    for m in methods:
+        streamed = np.concatenate([c.outputs[m] for c in chunks])
+        assert np.array_equal(streamed, outs[m], equal_nan=True), m
+    ticked = [c for c in chunks if len(c.inputs.t)]
+    # per chunk: the four methods, d_ekf (shared with its role as the witness) and linear_kf
+    # (d_ekf's own witness): 5 runs, not 4 + 4 witnesses
+    assert sorted(runs) == sorted(["kinematic_heuristic", "d_ekf", "zero", "k_kf",
+                                   "linear_kf"] * len(ticked))
+    # d_ekf with other params is not the witness
+    witness = Pipeline("kinematic_heuristic", profile).witness_key
+    assert Pipeline("d_ekf", profile).method_key == witness
+    assert Pipeline("d_ekf", profile, {"r_vx": 3e-3}).method_key != witness
 
 
 def load(name):

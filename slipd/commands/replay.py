@@ -79,6 +79,7 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
 
     from slipd.estimators import registry
     from slipd.profile import load_profile
+    from slipd.replay.ahead import ahead
     from slipd.replay.stream import CHUNK_BYTES, LogStream
 
     started = time.perf_counter()
@@ -88,8 +89,8 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     stream = LogStream(log, profile, methods, skip_bad, bus_map, chunk_bytes or CHUNK_BYTES)
     sinks = _Sinks(log, profile, methods, out, candump, truth)
     try:
-        for chunk in stream:
-            sinks.add(chunk, stream)
+        for chunk in ahead(stream, 1, f"estimate {log}"):  # estimated a chunk ahead of
+            sinks.add(chunk, stream)  # the files written here (pyarrow releases the GIL)
         if stream.read.frames == 0:  # a replay of nothing must not report success
             from slipd.replay.candump import LogFormatError
 
@@ -157,7 +158,8 @@ class _Sinks:
             status = chunk.outputs[name][:, Out.STATUS].astype(np.int64)
             self.valid[name] += int(np.count_nonzero(status & int(Status.VALID)))
         if self.merge is not None:
-            self.merge.add(chunk, stream.read.channels)
+            self.merge.add(chunk, chunk.frames.channels)  # the names when it was read:
+            # the reader runs chunks ahead, its list may have grown since
 
     def _open_writer(self, stream):
         from slipd.replay import writers

@@ -1,5 +1,5 @@
 """Pipelining a chunked replay over cores: a stage's items produced by a thread, ahead of
-their consumer.
+their consumer, or a stage's function mapped over its items by a pool of threads.
 
 The streaming replay (:mod:`slipd.replay.stream`) is a chain of stages over chunks of a log:
 read and parse, decode and latch, estimate, write. Their kernels release the GIL (numba
@@ -12,10 +12,13 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Iterable, Iterator
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
 T = TypeVar("T")
+R = TypeVar("R")
 
 _DONE = object()
 
@@ -63,3 +66,42 @@ def ahead(items: Iterable[T], depth: int = 1, name: str = "slipd ahead") -> Iter
                 results.get_nowait()
             except queue.Empty:
                 worker.join(0.01)
+
+
+def ahead_map(function: Callable[[T], R], items: Iterable[T], workers: int = 2,
+              depth: int | None = None, name: str = "slipd map") -> Iterator[R]:
+    """``function(item)`` of each of ``items``, in order, computed by ``workers`` threads
+    (``function`` should release the GIL: a numba ``nogil`` kernel), at most ``depth``
+    (default ``workers + 1``) items submitted and not yet handed out. ``items`` is advanced in
+    the caller's thread, and only while fewer than ``depth`` are in flight, so an item may
+    reuse a buffer of the ``depth + 1``-th item before it. An exception of ``function`` is
+    raised here, after the results before it; closing this generator early cancels what has
+    not started and waits for what has (it may still be using its item's buffer)."""
+    depth = max(1, depth if depth is not None else workers + 1)
+    pool = ThreadPoolExecutor(max(1, workers), thread_name_prefix=name)
+    pending: deque[Future] = deque()
+    iterator = iter(items)
+    error: Exception | None = None
+    try:
+        while True:
+            try:
+                item = next(iterator)
+            except StopIteration:
+                break
+            except Exception as exc:  # raised after the results of the items before it
+                error = exc
+                break
+            pending.append(pool.submit(function, item))
+            if len(pending) >= depth:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+        if error is not None:
+            raise error
+    finally:
+        for future in pending:
+            future.cancel()
+        pool.shutdown(wait=True)
+        close = getattr(iterator, "close", None)
+        if close is not None:
+            close()

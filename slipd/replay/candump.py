@@ -391,14 +391,88 @@ def _scan_plain_line(buf, pos, width, row, data_out):
             id_digits, length)
 
 
+#: decimal digit value of each byte, -1 for a byte that is none
+_DEC_VALUE = np.full(256, -1, dtype=np.int64)
+for _k, _c in enumerate(b"0123456789"):
+    _DEC_VALUE[_c] = _k
+
+
+@nb.njit(cache=True, inline="always")
+def _scan_known_shape(buf, pos, digits, frac_digits, chan_start, chan_len, row, data_out):
+    """The common line when it has the shape of the line before: ``digits`` and
+    ``frac_digits`` digits of timestamp and the channel name ``buf[chan_start:][:chan_len]``
+    at fixed places, then a 3- or 8-digit ID and at most 8 data bytes to the newline (or the
+    buffer's end). No branch per digit: the bytes' values are or-ed, a non-digit makes the
+    result negative. Returns (ok, next line's start, int_part, frac, this line's channel
+    start, can_id, id_digits, length), data bytes written into ``data_out[row]`` (wiped again
+    when ``ok`` is 0; the caller's scans take such a line). The caller's shape comes from a
+    line :func:`_scan_plain_line` read, so the exact-timestamp bound holds but for the size
+    of the seconds, checked here; any line this reads, that one reads to the same values
+    (tests/test_candump.py)."""
+    n = buf.shape[0]
+    dot = pos + 1 + digits
+    close = dot + 1 + frac_digits
+    here = close + 2  # this line's channel
+    q = here + chan_len + 1  # the ID's first digit
+    if q + 4 > n or row >= data_out.shape[0] or buf[pos] != 40 or buf[dot] != 46 or \
+            buf[close] != 41 or buf[close + 1] != 32 or buf[q - 1] != 32:
+        return 0, pos, 0, 0, 0, 0, 0, 0
+    for j in range(chan_len):
+        if buf[here + j] != buf[chan_start + j]:
+            return 0, pos, 0, 0, 0, 0, 0, 0
+    bad = 0
+    int_part = 0
+    for j in range(pos + 1, dot):
+        d = _DEC_VALUE[buf[j]]
+        bad |= d
+        int_part = int_part * 10 + d
+    frac = 0
+    for j in range(dot + 1, close):
+        d = _DEC_VALUE[buf[j]]
+        bad |= d
+        frac = frac * 10 + d
+    if buf[q + 3] == 35:
+        id_digits = 3
+    elif q + 8 < n and buf[q + 8] == 35:
+        id_digits = 8
+    else:
+        return 0, pos, 0, 0, 0, 0, 0, 0
+    can_id = 0
+    for j in range(q, q + id_digits):
+        h = _HEX_VALUE[buf[j]]
+        bad |= h
+        can_id = can_id * 16 + h
+    if bad < 0 or can_id > (0x7FF if id_digits == 3 else 0x1FFFFFFF) or \
+            int_part * _POW10_INT[frac_digits] + frac >= 2**53:
+        return 0, pos, 0, 0, 0, 0, 0, 0
+    p = q + id_digits + 1
+    length = 0
+    while p < n and buf[p] != 10 and length < 8 and p + 1 < n:
+        hi = _HEX_VALUE[buf[p]]
+        lo = _HEX_VALUE[buf[p + 1]]
+        bad |= hi | lo
+        data_out[row, length] = hi * 16 + lo
+        length += 1
+        p += 2
+    if bad < 0 or (p < n and buf[p] != 10):
+        for j in range(length):
+            data_out[row, j] = 0
+        return 0, pos, 0, 0, 0, 0, 0, 0
+    return 1, p + 1, int_part, frac, here, can_id, id_digits, length
+
+
 @nb.njit(cache=True, nogil=True)
 def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, chan_out,
-           line_out, chan_table, bad_out, fallback_out, one_pass=True):
+           line_out, chan_table, bad_out, fallback_out, line_shift=0, one_pass=True,
+           known_shape=True):
     """Parse every line; returns (n_frames, n_bad, first_error_line, error_code, n_channels,
-    needed_width). ``chan_table`` [MAX_CHANNELS, 2] holds (offset, length) of each distinct
-    channel name. ``line_out`` gets each frame's line number. ``fallback_out`` holds, per
-    frame, the line number of a timestamp with too many digits to parse exactly here (Python
-    re-parses those lines), else 0."""
+    needed_width, n_fallback). ``chan_table`` [MAX_CHANNELS, 2] holds (offset, length) of
+    each distinct channel name. ``line_out`` gets each frame's line number plus
+    ``line_shift`` (the line before ``buf`` in its log). ``fallback_out`` gets the first
+    frames (indices) whose timestamp has too many digits to parse exactly here (Python
+    re-parses those lines; ``n_fallback`` counts them all, a caller with a short array parses
+    again with a longer one). Error frames get python-can's dlc 0 and no data bytes here.
+    ``one_pass``/``known_shape`` False skip the one-pass scans (tests: the same frames)."""
     n = buf.shape[0]
     pos = 0
     line_no = 0
@@ -409,13 +483,30 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
     last_chan = -1
     last_start = 0
     last_len = 0
+    n_fallback = 0
+    shape_digits = -1  # the timestamp's digits of the last line a one-pass scan read
+    shape_frac = 0
     while pos < n:
         line_no += 1
         flags = 0
         approx = 0.0
-        (plain, next_pos, int_part, frac, digits, frac_digits, chan_start, chan_len, can_id,
-         id_digits, length) = (_scan_plain_line(buf, pos, width, count, data_out) if one_pass
-                               else (0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+        known = 0
+        if known_shape and shape_digits >= 0 and last_chan >= 0 and width >= 8:
+            (known, next_pos, int_part, frac, chan_start, can_id, id_digits,
+             length) = _scan_known_shape(buf, pos, shape_digits, shape_frac, last_start,
+                                         last_len, count, data_out)
+        if known:
+            digits = shape_digits
+            frac_digits = shape_frac
+            chan_len = last_len
+            plain = 1
+        else:
+            (plain, next_pos, int_part, frac, digits, frac_digits, chan_start, chan_len,
+             can_id, id_digits, length) = (_scan_plain_line(buf, pos, width, count, data_out)
+                                           if one_pass else (0, pos, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+            if plain:
+                shape_digits = digits
+                shape_frac = frac_digits
         if plain:
             pos = next_pos
             code = 0
@@ -444,7 +535,10 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
                 code, marker = _scan_marker(buf, p, stop)
                 flags |= marker
         chan_index = -1
-        if code == 0 and last_chan >= 0 and chan_len == last_len and _same_bytes(
+        if known:  # the last line's channel
+            chan_index = last_chan
+            last_start = chan_start
+        elif code == 0 and last_chan >= 0 and chan_len == last_len and _same_bytes(
                 buf, chan_start, last_start, chan_len):
             chan_index = last_chan
         elif code == 0:
@@ -453,7 +547,7 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
             last_chan, last_start, last_len = chan_index, chan_start, chan_len
         if code != 0:
             if not skip_bad:
-                return count, n_bad, line_no, code, n_chan, needed
+                return count, n_bad, line_no, code, n_chan, needed, n_fallback
             if n_bad < bad_out.shape[0]:
                 bad_out[n_bad] = line_no
             n_bad += 1
@@ -477,21 +571,52 @@ def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, ch
         exact = digits + frac_digits <= 18 and (int_part * _POW10_INT[frac_digits] + frac
                                                 ) < 2**53
         t_out[count] = (int_part * scale + frac) / scale if exact else approx
-        fallback_out[count] = 0 if exact else line_no
+        if not exact:
+            if n_fallback < fallback_out.shape[0]:
+                fallback_out[n_fallback] = count
+            n_fallback += 1
+        if flags & FLAG_ERROR:  # python-can keeps no length or data of an error frame
+            length = 0
+            for j in range(width):
+                data_out[count, j] = 0
         id_out[count] = can_id
         flags_out[count] = flags
         dlc_out[count] = length
         chan_out[count] = chan_index
-        line_out[count] = line_no
+        line_out[count] = line_no + line_shift
         count += 1
-    return count, n_bad, 0, 0, n_chan, needed
+    return count, n_bad, 0, 0, n_chan, needed, n_fallback
+
+
+def count_newlines(buf: np.ndarray) -> int:
+    """Newline bytes in ``buf`` (uint8, contiguous): ``np.count_nonzero(buf == 10)`` without
+    its temporary, 8 bytes at a time (the read of a block counts them before it is parsed)."""
+    if buf.shape[0] < 16:
+        return int(np.count_nonzero(buf == 10))
+    return int(_count_newlines(buf, -buf.ctypes.data % 8))
+
+
+_ONES = np.uint64(0x0101010101010101)
+_LOW7 = np.uint64(0x7F7F7F7F7F7F7F7F)
+_NEWLINES = np.uint64(0x0A0A0A0A0A0A0A0A)
 
 
 @nb.njit(cache=True, nogil=True)
-def count_newlines(buf):
-    """Newline bytes in ``buf`` (uint8), without the temporary of ``np.count_nonzero``."""
+def _count_newlines(buf, head):
+    """Newline bytes in ``buf``: the ``head`` bytes before its first 8-byte aligned address
+    one by one, then words (a byte x of w ^ 0x0A.. is 0 exactly when ((x & 0x7F) + 0x7F) | x
+    has its high bit clear; the high bits summed by a multiply), then the tail."""
+    n = buf.shape[0]
     count = 0
-    for i in range(buf.shape[0]):
+    for i in range(head):
+        count += buf[i] == 10
+    words = (n - head) // 8
+    w = buf[head:head + 8 * words].view(np.uint64)
+    for i in range(words):
+        x = w[i] ^ _NEWLINES
+        t = ((x & _LOW7) + _LOW7) | x
+        count += ((~t >> np.uint64(7)) & _ONES) * _ONES >> np.uint64(56)
+    for i in range(head + 8 * words, n):
         count += buf[i] == 10
     return count
 
@@ -510,14 +635,6 @@ def _load_bytes(path: Path) -> tuple[np.ndarray, object]:
     with open(path, "rb") as handle:
         mapped = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
     return np.frombuffer(mapped, dtype=np.uint8), mapped
-
-
-def _error_frame_fixups(frames: Frames) -> None:
-    """python-can's reader gives error frames dlc 0 and no data bytes; mirror that."""
-    error = (frames.flags & FLAG_ERROR) != 0
-    if error.any():
-        frames.dlc[error] = 0
-        frames.data[error] = 0
 
 
 def read_candump(path: str | Path, skip_bad: bool = False) -> Frames:
@@ -539,48 +656,50 @@ def read_candump(path: str | Path, skip_bad: bool = False) -> Frames:
 
 
 def parse_candump(buf: np.ndarray, source: str, skip_bad: bool = False,
-                  first_line: int = 1, one_pass: bool = True) -> Frames:
+                  first_line: int = 1, one_pass: bool = True,
+                  newlines: int | None = None, known_shape: bool = True) -> Frames:
     """The frames of the whole ``candump -L`` lines in ``buf`` (uint8). ``first_line`` is the
     line number of ``buf``'s first line in ``source`` (a piece of a longer log, read in
     chunks by slipd.replay.stream), so errors and skipped lines name the log's own lines.
     Channel indices are this piece's own, in order of first appearance. ``one_pass`` False
-    skips the one-pass scan of the common line (tests: the two read the same frames)."""
-    n_lines = int(count_newlines(buf)) + 1
+    skips the one-pass scans of the common line, ``known_shape`` False the one of a line
+    shaped as the one before (tests: each reads the same frames).
+    ``newlines``: ``count_newlines(buf)`` when the caller has counted them already."""
+    n_lines = (count_newlines(buf) if newlines is None else newlines) + 1
     width = 8
     shift = first_line - 1
+    fallback = np.zeros(64, dtype=np.int64)
     while True:
-        t = np.zeros(n_lines)
-        ids = np.zeros(n_lines, dtype=np.int64)
-        flags = np.zeros(n_lines, dtype=np.uint8)
-        dlc = np.zeros(n_lines, dtype=np.uint8)
+        t = np.empty(n_lines)
+        ids = np.empty(n_lines, dtype=np.int64)
+        flags = np.empty(n_lines, dtype=np.uint8)
+        dlc = np.empty(n_lines, dtype=np.uint8)
         data = np.zeros((n_lines, width), dtype=np.uint8)
-        chan = np.zeros(n_lines, dtype=np.uint8)
-        line = np.zeros(n_lines, dtype=np.int64)
+        chan = np.empty(n_lines, dtype=np.uint8)
+        line = np.empty(n_lines, dtype=np.int64)
         chan_table = np.zeros((MAX_CHANNELS, 2), dtype=np.int64)
         bad = np.zeros(100, dtype=np.int64)
-        fallback = np.zeros(n_lines, dtype=np.int64)
-        count, n_bad, err_line, err_code, n_chan, needed = _parse(
+        count, n_bad, err_line, err_code, n_chan, needed, n_fallback = _parse(
             buf, width, skip_bad, t, ids, flags, dlc, data, chan, line, chan_table, bad,
-            fallback, one_pass)
+            fallback, shift, one_pass, known_shape and one_pass)
         if err_code:
             text = bytes(_line_text(buf, err_line)).decode("utf-8", "replace")
             raise LogFormatError(
                 f"{source}:{err_line + shift}: {ERROR_REASONS.get(err_code, 'malformed line')}: "
                 f"{text!r} (use --skip-bad to count and skip such lines)"
             )
-        if needed <= width:
+        if needed <= width and n_fallback <= len(fallback):
             break
-        width = 64
+        width = 64 if needed > width else width
+        fallback = np.zeros(max(n_fallback, len(fallback)), dtype=np.int64)
     names = [bytes(buf[o:o + n]).decode("ascii", "replace") for o, n in chan_table[:n_chan]]
-    if fallback[:count].any():
+    if n_fallback:
         line_starts = np.concatenate(([0], np.flatnonzero(buf == 10) + 1))
-        for index in np.flatnonzero(fallback[:count]):
-            t[index] = _python_timestamp(buf, line_starts, int(fallback[index]))
-    frames = Frames(t[:count], ids[:count], flags[:count], dlc[:count], data[:count],
-                    chan[:count], names, source, int(n_bad),
-                    [int(x) + shift for x in bad[:min(n_bad, 100)]], line[:count] + shift)
-    _error_frame_fixups(frames)
-    return frames
+        for index in fallback[:n_fallback]:
+            t[index] = _python_timestamp(buf, line_starts, int(line[index]) - shift)
+    return Frames(t[:count], ids[:count], flags[:count], dlc[:count], data[:count],
+                  chan[:count], names, source, int(n_bad),
+                  [int(x) + shift for x in bad[:min(n_bad, 100)]], line[:count])
 
 
 def _line_text(buf: np.ndarray, line_no: int) -> np.ndarray:

@@ -46,9 +46,9 @@ import numpy as np
 from slipd.channels import N_OUT, U_LEN
 from slipd.codec import Codec, kernels
 from slipd.errors import ConfigError, LogFormatError
-from slipd.pipeline import TICK_DT, Pipeline, steps_per_tick
+from slipd.pipeline import TICK_DT, Pipeline, RawRuns, steps_per_tick
 from slipd.profile import Profile, load_profile
-from slipd.replay.ahead import ahead
+from slipd.replay.ahead import ahead, ahead_map
 from slipd.replay.candump import (
     FLAG_TX,
     MAX_CHANNELS,
@@ -69,6 +69,9 @@ from slipd.replay.engine import (
 #: fleet.py): a 16 MB chunk peaked at ~640 MB RSS, 4 MB at ~440 MB (of which ~290 MB are the
 #: loaded kernels), at the same speed.
 CHUNK_BYTES = 4 << 20
+#: Threads parsing a candump log's blocks at once (line blocks are independent; the parse
+#: kernel releases the GIL), one per core of the 2-core machine the targets are set on.
+PARSE_WORKERS = 2
 #: Bytes of a candump line, for sizing chunks of the formats read message by message.
 _LINE_BYTES = 36
 
@@ -78,23 +81,27 @@ _LINE_BYTES = 36
 # ---------------------------------------------------------------------------------------------
 
 
-def line_blocks(path: Path, chunk_bytes: int = CHUNK_BYTES, digest=None
-                ) -> Iterator[tuple[np.ndarray, int]]:
+def line_blocks(path: Path, chunk_bytes: int = CHUNK_BYTES, digest=None, buffers: int = 1
+                ) -> Iterator[tuple[np.ndarray, int, int]]:
     """Whole lines of a text file (``.gz`` decompressed) in blocks of about ``chunk_bytes``:
-    (uint8 view of the block, line number of its first line). A block is valid until the next
-    one is asked for (one buffer is reused). ``digest`` (a hashlib object) is fed the file's
-    bytes as they are read (gzip: the decompressed text)."""
+    (uint8 view of the block, line number of its first line, newlines in it). A ring of
+    ``buffers`` buffers is reused: a block is valid until ``buffers`` more have been asked
+    for. ``digest`` (a hashlib object) is fed the file's bytes as they are read (gzip: the
+    decompressed text)."""
     path = Path(path)
     if not path.exists():
         raise LogFormatError(f"{path}: no such file")
     opener = gzip.open if path.suffix == ".gz" else open
-    buf = np.empty(max(int(chunk_bytes), 1 << 12), dtype=np.uint8)
+    size = max(int(chunk_bytes), 1 << 12)
+    ring = [np.empty(size, dtype=np.uint8) for _ in range(max(1, buffers))]
+    turn = 0
+    buf = ring[0]
     carry = 0
     line = 1
     with opener(path, "rb") as handle:
         while True:
             if carry == len(buf):  # a line longer than the buffer: grow it
-                buf = np.concatenate([buf, np.empty(len(buf), dtype=np.uint8)])
+                buf = ring[turn] = np.concatenate([buf, np.empty(len(buf), dtype=np.uint8)])
             view = memoryview(buf)[carry:]
             try:
                 got = handle.readinto(view)
@@ -106,17 +113,22 @@ def line_blocks(path: Path, chunk_bytes: int = CHUNK_BYTES, digest=None
             end = carry + got
             if got == 0:
                 if carry:
-                    yield buf[:carry], line
+                    yield buf[:carry], line, count_newlines(buf[:carry])
                 return
             cut = _after_last_newline(buf, carry, end)
             if cut == 0:  # no line ends in the buffer yet
                 carry = end
                 continue
             block = buf[:cut]
-            yield block, line
-            line += int(count_newlines(block))
+            newlines = count_newlines(block)
+            yield block, line, newlines
+            line += newlines
             carry = end - cut
-            buf[:carry] = buf[cut:end]
+            turn = (turn + 1) % len(ring)  # the tail starts the next buffer of the ring
+            if len(ring[turn]) < carry:
+                ring[turn] = np.empty(len(buf), dtype=np.uint8)
+            ring[turn][:carry] = buf[cut:end]
+            buf = ring[turn]
 
 
 def _after_last_newline(buf: np.ndarray, start: int, end: int) -> int:
@@ -181,10 +193,16 @@ def frame_chunks(path: str | Path, skip_bad: bool = False, chunk_bytes: int = CH
     base_suffix = suffixes.removesuffix(".gz")
     if base_suffix in readers.CANDUMP_SUFFIXES or base_suffix == "":
         digest = hashlib.sha256() if checksum else None
-        blocks = line_blocks(path, chunk_bytes, digest)
-        parsed = (parse_candump(block, str(path), skip_bad, first_line)
-                  for block, first_line in blocks)
-        for frames in ahead(parsed, 2, f"parse {path}"):  # read and parsed in a thread
+        # blocks read by a thread of their own and parsed by PARSE_WORKERS threads (the
+        # kernel releases the GIL); the caller (the latch thread) only takes the frames
+        blocks = line_blocks(path, chunk_bytes, digest, buffers=PARSE_WORKERS + 2)
+
+        def parse(block: tuple[np.ndarray, int, int]) -> Frames:
+            text, first_line, newlines = block
+            return parse_candump(text, str(path), skip_bad, first_line, newlines=newlines)
+
+        parsed = ahead_map(parse, blocks, PARSE_WORKERS, PARSE_WORKERS + 1, f"parse {path}")
+        for frames in ahead(parsed, 1, f"read {path}"):
             yield stats.adopt(frames)
         if digest is not None:
             stats.sha256 = digest.hexdigest()
@@ -466,12 +484,15 @@ class MethodRuns:
         self.pipelines = {name: built.get(name) or Pipeline(name, profile, overrides, dt)
                           for name in methods}
         self.states = {name: p.new_state() for name, p in self.pipelines.items()}
+        #: raw runs more than one method needs (the witness): each made once per chunk
+        self.shared = RawRuns.shared_keys(self.pipelines.values())
 
     def run(self, inputs: Inputs) -> dict[str, np.ndarray]:
         """Each method's supervised outputs [n_ticks, N_OUT] on a chunk's inputs."""
         if not len(inputs.t):
             return {name: np.zeros((0, N_OUT)) for name in self.pipelines}
-        return {name: p.run(inputs.U, inputs.steps, self.states[name])
+        raw = RawRuns(self.shared) if self.shared else None
+        return {name: p.run(inputs.U, inputs.steps, self.states[name], raw)
                 for name, p in self.pipelines.items()}
 
 

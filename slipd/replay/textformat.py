@@ -99,7 +99,7 @@ def _put_fixed(out, p, x, decimals):
     return p
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)  # the CSV writer overlaps the stages before it
 def format_rows(values, decimals, text, text_at, out, python_rows, row_end):
     """CSV lines of ``values`` [n, k] into ``out`` (uint8, :func:`row_room` bytes a row):
     column j with ``decimals[j]`` digits after the point (INTEGER: a whole number; plus
