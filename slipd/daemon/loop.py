@@ -809,10 +809,6 @@ class Daemon:
                 "tool_events": list(self.tool_events), "events_dropped": self.events_dropped,
                 "recorder": recorder}
 
-    def _gauges(self) -> tuple[float, ...]:
-        return (self.last_status, math.degrees(self.out[Out.BETA]), self.out[Out.VX],
-                time.monotonic() - self.started_at)
-
     def _publish(self, fresh: bool) -> bytes:
         """Answer the stats server (StatsServer.poll): the live numbers into the block's
         published area; the words only when they changed since the last answer (or the
@@ -826,10 +822,7 @@ class Daemon:
     def snapshot(self) -> dict:
         """The whole snapshot, computed here (at the end of a run; tests)."""
         self.stats.decode_errors = self.codec.error_counts()
-        extra = dict(zip(("status", "beta_deg", "vx_mps", "uptime_s"), self._gauges(),
-                         strict=True))
-        extra["status"] = int(extra["status"])
-        return self.stats.snapshot({**extra, **self._text_document()})
+        return self.stats.snapshot(self._text_document())  # gauges as of the last tick
 
     def _on_gc(self, phase: str, info: dict) -> None:
         """gc.callbacks hook: every collector pause into the gc_pause_us histogram, so a

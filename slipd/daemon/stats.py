@@ -371,9 +371,8 @@ class Stats:
     def snapshot(self, extra: dict | None = None) -> dict:
         """The whole snapshot in this process (the end of a run, tests): the stats server
         builds the same document from the shared block."""
-        live = self.shared.read(live=True)
-        result = {"counters": live["counters"], "rx_per_id": live["rx_per_id"],
-                  "decode_errors": self.decode_errors}
+        live = self.shared.read(live=True)  # the gauges as the loop set them last
+        result = {**live, "decode_errors": self.decode_errors}
         if extra:
             result.update(extra)
         for name, h in self.histograms.items():

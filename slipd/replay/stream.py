@@ -36,6 +36,7 @@ from __future__ import annotations
 import gzip
 import hashlib
 import itertools
+import os
 import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -70,8 +71,8 @@ from slipd.replay.engine import (
 #: loaded kernels), at the same speed.
 CHUNK_BYTES = 4 << 20
 #: Threads parsing a candump log's blocks at once (line blocks are independent; the parse
-#: kernel releases the GIL), one per core of the 2-core machine the targets are set on.
-PARSE_WORKERS = 2
+#: kernel releases the GIL): two, measured on 2 cores, and never more than the cores.
+PARSE_WORKERS = max(1, min(2, os.cpu_count() or 1))
 #: Bytes of a candump line, for sizing chunks of the formats read message by message.
 _LINE_BYTES = 36
 
