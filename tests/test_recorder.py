@@ -116,5 +116,9 @@ def test_a_daemon_whose_recorder_cannot_open_still_starts(tmp_path):
         final = Daemon(config, bus=bus, log=logged.append).run()
     finally:
         bus.shutdown()
-    assert final["counters"]["ticks"] > 20 and final["counters"]["recorder_errors"] == 1
+    counters = final["counters"]
+    # it estimated through its whole duration: every 10 ms tick of the 0.5 s either ran or,
+    # on a loaded machine, was skipped and counted as a miss (a fixed tick count is timing)
+    assert counters["ticks"] > 0 and counters["ticks"] + counters["deadline_misses"] >= 45
+    assert counters["recorder_errors"] == 1
     assert final["recorder"]["status"].startswith("stopped: cannot create the directory of")
