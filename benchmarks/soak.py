@@ -109,12 +109,13 @@ def soak(duration: float, sample_s: float, settle_s: float, estimator: str, rate
     # a cold cache under load) every query is refused with "no snapshot yet", and the 1-hour
     # run counted those 118 as failures of the tools.
     deadline = time.monotonic() + 300
+    loop_uptime = 0.0
     while daemon.poll() is None:
         if time.monotonic() > deadline:
             raise SystemExit("the daemon did not start")
         if os.path.exists(stats_socket):
             try:
-                query(stats_socket, timeout=2.0)
+                loop_uptime = float(query(stats_socket, timeout=2.0)["uptime_s"])
                 break
             except (OSError, ValueError):
                 pass
@@ -127,7 +128,10 @@ def soak(duration: float, sample_s: float, settle_s: float, estimator: str, rate
     reader.start()
     samples = []  # (s since start, daemon RSS MB, server RSS MB, ticks, misses)
     last = None
-    readers_until = started + duration - 5.0  # readers stop before the daemon does
+    # readers stop before the daemon does: its --duration counts from its loop's start, which
+    # was loop_uptime before the first answer (the 1-hour run counted 6 queries sent after
+    # the daemon had gone, FileNotFoundError on its removed socket, as failures of the tools)
+    readers_until = started - loop_uptime + duration - 5.0
     while daemon.poll() is None:
         time.sleep(sample_s)
         if time.monotonic() >= readers_until:
