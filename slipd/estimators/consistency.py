@@ -224,6 +224,13 @@ def witness_sigma(ay_abs, params, vehicle):
 
 
 @nb.njit(cache=True, inline="always")
+def _log_nis_level(state):
+    """ln of the level: the forgotten sum bias-corrected by its weight (a mean of what was
+    seen so far while less than a time constant has been)."""
+    return state[S.LOG_NIS_SUM] / state[S.LOG_NIS_WEIGHT]
+
+
+@nb.njit(cache=True, inline="always")
 def innovation_ratio(state, nis, params, dt):
     """The innovation test: ``nis`` (the method's Out.NIS) over the level this filter keeps on
     this car (module docstring), after taking it into the level; 0 while the level is not yet
@@ -236,16 +243,14 @@ def innovation_ratio(state, nis, params, dt):
         # once the level is known, a tick far above it is the anomaly the test is for, not the
         # car's level: it moves the level by at most the clip ratio's worth, so that a long
         # inconsistency (a 15 s drift on snow) cannot raise the level until it passes the test
-        log_level = state[S.LOG_NIS_SUM] / state[S.LOG_NIS_WEIGHT]
-        log_nis = min(log_nis, log_level + math.log(params[PARAMS.NIS_LEVEL_CLIP_RATIO]))
+        log_nis = min(log_nis,
+                      _log_nis_level(state) + math.log(params[PARAMS.NIS_LEVEL_CLIP_RATIO]))
     state[S.LOG_NIS_SUM] += gain * (log_nis - state[S.LOG_NIS_SUM])
     state[S.LOG_NIS_WEIGHT] += gain * (1.0 - state[S.LOG_NIS_WEIGHT])
     state[S.NIS_SEEN] += dt
     if state[S.NIS_SEEN] < params[PARAMS.NIS_LEVEL_MIN_TIME]:
         return 0.0
-    # the forgotten sums are bias-corrected by the weight (a mean of what was seen so far
-    # while less than a time constant has been)
-    return nis / math.exp(state[S.LOG_NIS_SUM] / state[S.LOG_NIS_WEIGHT])
+    return nis / math.exp(_log_nis_level(state))
 
 
 @nb.njit(cache=True)
