@@ -16,8 +16,10 @@ the batch engine runs it: every Out column incl. status), with every NaN mapped 
 and -0.0 to 0.0 (a NaN's payload and a zero's sign change no frame on the bus). The latched
 inputs of each drive are hashed too, so a failure says whether the simulator or codec moved
 (``inputs``) or an estimator did. The values hold for this project's toolchain (numba with
-NUMBA_CPU_NAME=generic, the pinned simulator); another libm may round a transcendental
-function differently.
+NUMBA_CPU_NAME=generic, the pinned simulator); another CPU or libm may round a
+transcendental function differently, and the simulator's drives then move by ~1e-4 deg
+(regenerated on 2026-12-02 for the 2-vCPU Xeon with AVX-512 machines: every fingerprint
+within 1e-4 deg of the earlier machines' but snow_drift's, within 0.05 deg of its mean).
 """
 
 from __future__ import annotations

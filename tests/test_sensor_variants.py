@@ -43,11 +43,20 @@ TOUCHES = {
 
 #: sha256 of logs and truth CSVs written by `slipd sim sine_steer --duration 3 --seed N` before
 #: the sensor variants existed (main at deec598): the baseline must not move.
+#: (seed, file) -> the digests of the toolchains the suite has run on: the simulator's
+#: transcendental functions round differently on another CPU and libm (measured: this
+#: project's machines until 2026-12-01, then a 2-vCPU Xeon with AVX-512 from 2026-12-02, whose
+#: drives differ by ~1e-4 deg), so each machine kind's bytes are listed; a change of the code
+#: changes them all.
 BASELINE_SHA256 = {
-    (0, "log"): "7f92710a6039a5a7cbb6c28fd474648a667187da120416c4fb8b61562803053f",
-    (0, "truth.csv"): "80babb36b436a05c4578dd9409a763ecbc6736006dec8fee17936b33b668948e",
-    (1, "log"): "db6fc6daae53255a389d2fcd2983df8e267203fcf21f90f57684005e7686ffa5",
-    (1, "truth.csv"): "0c87f51d3225a84b642a106f4544c5a27ea13de42b97207e4376216f0046b673",
+    (0, "log"): ("7f92710a6039a5a7cbb6c28fd474648a667187da120416c4fb8b61562803053f",
+                 "56dabbe19ae4b02b05a2518e95243ae0183c35b036fcd0a0a3c65d35644d9fab"),
+    (0, "truth.csv"): ("80babb36b436a05c4578dd9409a763ecbc6736006dec8fee17936b33b668948e",
+                       "e74e6fe56422af97d72999ca48f56c1e5c48c4f691ad8b4930a6911ce6c979dc"),
+    (1, "log"): ("db6fc6daae53255a389d2fcd2983df8e267203fcf21f90f57684005e7686ffa5",
+                 "85c430cfdfbf12ad61f02c3004ac4ac064ba4ecabd4a8b8e49fe1743d5c7cc69"),
+    (1, "truth.csv"): ("0c87f51d3225a84b642a106f4544c5a27ea13de42b97207e4376216f0046b673",
+                       "c60de593fb294235e63efd5600744669c5a1e62f415e5b0fe426820d36a56ab6"),
 }
 
 
@@ -90,7 +99,7 @@ def test_baseline_log_and_truth_are_byte_identical_to_before(tmp_path):
         simulate_to_files("sine_steer", tmp_path / str(seed), seed=seed, duration=3.0)
         for suffix in ("log", "truth.csv"):
             data = (tmp_path / str(seed) / f"sine_steer.{suffix}").read_bytes()
-            assert hashlib.sha256(data).hexdigest() == BASELINE_SHA256[seed, suffix], (
+            assert hashlib.sha256(data).hexdigest() in BASELINE_SHA256[seed, suffix], (
                 f"the baseline simulation changed (seed {seed}, {suffix}): if on purpose, say "
                 "so in the commit and update BASELINE_SHA256")
 
