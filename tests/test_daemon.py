@@ -386,6 +386,26 @@ print(len(registry.available()), arraymath._HAVE_BLAS, "scipy.linalg" in sys.mod
     assert have_blas == "False" and scipy_linalg == "False"
 
 
+def test_the_slipd_run_process_loads_no_other_command_s_imports():
+    """`slipd run` through the CLI: the parser imports only the run command's module (eval's
+    imported numba before run's BLAS guard), and python-can's MF4 support does not bring
+    asammdf with pandas and pyarrow (76 MB of the daemon's RSS, measured)."""
+    names = ("scipy.linalg", "asammdf", "pandas", "pyarrow", "slipd.commands.eval", "slipd.sim")
+    script = f"""
+import sys
+from slipd.cli import main
+code = main(["run", "--interface", "virtual", "--channel", "own-imports", "--duration", "0.5"])
+from numba.np import arraymath
+print(code, arraymath._HAVE_BLAS, *(sys.modules.get(name) is not None for name in {names!r}))
+"""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    code, have_blas, *loaded = result.stdout.split()[-2 - len(names):]
+    assert code == "0" and have_blas == "False"
+    assert [n for n, flag in zip(names, loaded, strict=True) if flag != "False"] == []
+
+
 def test_the_daemon_log_reaches_a_pipe_while_it_runs():
     """Under systemd stdout is a pipe to the journal: each line must arrive when logged, not
     when Python's buffer fills or the process exits."""
