@@ -12,9 +12,10 @@ dask: N simulated logs (the suite's scenarios in turn, seeds 0, 1, ...), then N 
 --minutes each made of them back to back (fleet logs are drives, not 10-60 s manoeuvres; the
 cluster's start is a fixed cost the short logs cannot amortise), replayed sequentially in one
 process (``slipd.replay.fleet.run_fleet`` without a client: the same tasks one after the
-other) against ``slipd replay LOGS --dask local:2``; wall time of each command (process start,
-kernel loading and the cluster's start included), the ratio, the peak RSS per worker, and the
-two datasets compared table by table.
+other), with the replay's stage threads and with one (``SLIPD_REPLAY_THREADS=1``), against
+``slipd replay LOGS --dask local:2`` (one replay thread per worker); wall time of each command
+(process start, kernel loading and the cluster's start included), the ratios, the peak RSS per
+worker, and the datasets compared table by table.
 
     .venv/bin/python -m benchmarks.fleet [--log ENDURANCE.log] [--logs 40] [--minutes 10]
         [--skip-24h]
@@ -37,14 +38,19 @@ import tempfile
 import time
 from pathlib import Path
 
+from slipd.replay.ahead import THREADS_VARIABLE
+
 SLIPD = [sys.executable, "-m", "slipd.cli"]
 
 
-def measured(command: list[str]) -> tuple[float, float, str]:
-    """Run ``command``; (wall seconds, peak RSS in MB of that process alone, its stdout).
-    A failure stops the benchmark with the command's stderr."""
+def measured(command: list[str], env: dict[str, str] | None = None
+             ) -> tuple[float, float, str]:
+    """Run ``command`` (with ``env`` added to this process's environment); (wall seconds,
+    peak RSS in MB of that process alone, its stdout). A failure stops the benchmark with the
+    command's stderr."""
     started = time.perf_counter()
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               env={**os.environ, **(env or {})})
     # wait4 gives this child's own rusage (RUSAGE_CHILDREN would be the max over all children)
     stdout, stderr = process.stdout.read(), process.stderr.read()
     _, status, usage = os.wait4(process.pid, 0)
@@ -246,10 +252,14 @@ def sequential_against_dask(tmp: Path, logs: list[Path], methods: str, workers: 
     tmp.mkdir(parents=True)
     code = ("import sys; from benchmarks.fleet import sequential_fleet; "
             "sequential_fleet(*sys.argv[1:])")
-    # warm the numba cache for these methods (both runs then load it)
+    # warm the numba cache for these methods (every run then loads it)
     measured([sys.executable, "-c", code, str(tmp / "warm"), methods, str(logs[0])])
+    # sequential with the replay's stage threads (what one `slipd replay LOGS` does on this
+    # machine), and with one thread (the same stages in turn: a core's work)
     seq_wall, seq_rss, _ = measured([sys.executable, "-c", code, str(tmp / "seq"), methods,
                                      *map(str, logs)])
+    one_wall, one_rss, _ = measured([sys.executable, "-c", code, str(tmp / "seq1"), methods,
+                                     *map(str, logs)], {THREADS_VARIABLE: "1"})
     dask_wall, client_rss, _ = measured(SLIPD + ["replay", *map(str, logs), "--estimator",
                                                  methods, "--dask", f"local:{workers}",
                                                  "--out", str(tmp / "dask")])
@@ -258,18 +268,25 @@ def sequential_against_dask(tmp: Path, logs: list[Path], methods: str, workers: 
     per_worker = {}
     for worker, seconds in zip(summary["worker"], summary["seconds"], strict=True):
         per_worker[worker] = per_worker.get(worker, 0.0) + seconds
-    seq_tasks = sum(pq.read_table(tmp / "seq" / "summary.parquet")["seconds"].to_pylist())
     rss = worker_peaks(tmp / "dask")
-    print(f"sequential (one process, {frames} frames): {seq_wall:.1f} s, peak RSS "
-          f"{seq_rss:.0f} MB; {seq_tasks:.1f} s in tasks, {seq_wall - seq_tasks:.1f} s "
-          "outside them (start, imports, kernels, summary)")
-    print(f"--dask local:{workers}: {dask_wall:.1f} s (client peak RSS {client_rss:.0f} MB; "
+    for name, wall, peak, folder in (("sequential", seq_wall, seq_rss, "seq"),
+                                     ("sequential, one thread", one_wall, one_rss, "seq1")):
+        tasks = pq.read_table(tmp / folder / "summary.parquet").to_pydict()
+        print(f"{name} (one process, {frames} frames, {tasks['threads'][0]} replay "
+              f"thread(s)): {wall:.1f} s, peak RSS {peak:.0f} MB; {sum(tasks['seconds']):.1f} s "
+              f"in tasks, {wall - sum(tasks['seconds']):.1f} s outside them (start, imports, "
+              "kernels, summary)")
+    print(f"--dask local:{workers} ({summary['threads'][0]} replay thread(s) per worker): "
+          f"{dask_wall:.1f} s (client peak RSS {client_rss:.0f} MB; "
           f"per worker: " + ", ".join(f"{s:.1f} s of tasks" for s in per_worker.values())
           + (f"; worker peak RSS {', '.join(f'{r:.0f}' for r in rss)} MB" if rss else "")
           + f"); {dask_wall - max(per_worker.values(), default=0.0):.1f} s outside the "
           "busiest worker's tasks (start, imports, cluster, kernels, close)")
-    print(f"speed-up: {seq_wall / dask_wall:.2f}x (target >= 1.7x on 2 cores); "
-          f"datasets identical: {same_datasets(tmp / 'seq', tmp / 'dask')}")
+    same = same_datasets(tmp / "seq", tmp / "dask") and same_datasets(tmp / "seq1",
+                                                                       tmp / "dask")
+    print(f"speed-up: {seq_wall / dask_wall:.2f}x the sequential run, {one_wall / dask_wall:.2f}x"
+          f" the one-thread sequential run (target >= 1.7x on 2 cores); datasets identical: "
+          f"{same}")
 
 
 def worker_peaks(dataset: Path) -> list[float]:

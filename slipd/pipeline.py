@@ -183,6 +183,27 @@ class Pipeline:
             raw.runs[key] = (out, state.copy())
         return out
 
+    def raw_jobs(self, state: np.ndarray) -> list[tuple[tuple, object, np.ndarray]]:
+        """The raw runs ``run`` makes on ``state`` ([method | witness | monitor]): (key,
+        loaded method, view of its part of ``state``) of the method and of the witness, for
+        running them elsewhere (``raw_run``) and handing ``run`` the results in a
+        :class:`RawRuns`."""
+        if not self.monitor:
+            return [(self.method_key, self.method, state)]
+        method_state, witness_state, _ = self.parts(state)
+        jobs = [(self.method_key, self.method, method_state)]
+        if self.witness is not None:
+            jobs.append((self.witness_key, self.witness, witness_state))
+        return jobs
+
+    def raw_run(self, method, state: np.ndarray, U: np.ndarray,
+                steps: np.ndarray | None = None) -> np.ndarray:
+        """``method``'s raw outputs [n, N_OUT] on the ticks ``U`` (one of ``raw_jobs``),
+        advancing ``state`` (a copy of the job's part, which ``run`` then takes from the
+        :class:`RawRuns`)."""
+        stepped = U if steps is None else np.repeat(U, steps, axis=0)
+        return self._run_method(method, state, stepped, steps)
+
     def _run_method(self, method, state, stepped, steps) -> np.ndarray:
         out = np.zeros((len(stepped), N_OUT))
         method.run_ticks(state, stepped, method.params, self.vehicle, self.dt, out)

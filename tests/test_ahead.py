@@ -8,7 +8,13 @@ import time
 
 import pytest
 
-from slipd.replay.ahead import ahead, ahead_map
+from slipd.replay.ahead import THREADS_VARIABLE, ahead, ahead_map
+
+
+@pytest.fixture(autouse=True)
+def two_replay_threads(monkeypatch):
+    """The threaded path, whatever the CPUs of the machine (one CPU: none by default)."""
+    monkeypatch.setenv(THREADS_VARIABLE, "2")
 
 
 def test_items_arrive_in_order_from_another_thread():
@@ -145,3 +151,36 @@ def test_no_more_than_depth_items_are_in_flight():
     for item in ahead_map(lambda k: k, items(), workers=2, depth=3):
         handed.append(item)
         time.sleep(0.001)
+
+
+def test_without_threads_the_items_come_from_the_caller_s_thread():
+    here = threading.get_ident()
+    seen = []
+
+    def items():
+        for k in range(5):
+            seen.append(threading.get_ident())
+            yield k
+
+    assert list(ahead(items(), 2, threaded=False)) == list(range(5))
+    assert list(ahead_map(lambda k: (seen.append(threading.get_ident()), k * k)[1], range(5),
+                          threaded=False)) == [k * k for k in range(5)]
+    assert set(seen) == {here}
+
+
+def test_without_threads_closing_early_closes_the_source():
+    closed = []
+
+    def items():
+        try:
+            yield from range(100)
+        finally:
+            closed.append(True)
+
+    for stream in (ahead(items(), threaded=False),
+                   ahead_map(lambda k: k, items(), threaded=False)):
+        for item in stream:
+            if item == 3:
+                break
+        stream.close()
+    assert closed == [True, True]

@@ -170,6 +170,8 @@ def test_a_local_cluster_forks_its_workers_from_a_server_that_loaded_the_kernels
     assert all(loaded for loaded, _ in preloaded.values())
     assert {parent for _, parent in preloaded.values()} != {os.getpid()}
     assert [r.status for r in records] == ["ok", "ok"]
+    # two workers share the CPUs' replay threads (one each on 2 CPUs: stages in turn)
+    assert [r.threads for r in records] == [max(1, len(os.sched_getaffinity(0)) // 2)] * 2
     for name in names:
         alone = tmp_path / f"{name}.parquet"
         assert main(["replay", str(logs / f"{name}.log"), "--estimator", METHODS,

@@ -19,10 +19,11 @@ from slipd.errors import ConfigError, LogFormatError
 from slipd.estimators.registry import available
 from slipd.pipeline import Pipeline
 from slipd.replay import outputs, textformat, writers
+from slipd.replay.ahead import THREADS_VARIABLE
 from slipd.replay.candump import read_candump, write_candump
 from slipd.replay.engine import Estimate, latch_log_or_recording
 from slipd.replay.readers import read_frames
-from slipd.replay.stream import LogStream, joined_inputs, line_blocks
+from slipd.replay.stream import LogStream, MethodRuns, joined_inputs, line_blocks
 
 #: chunk sizes in bytes: a few lines, a few hundred lines, the whole log
 CHUNKS = (1 << 12, 1 << 16, 1 << 30)
@@ -54,10 +55,14 @@ def assert_stream_is_whole(log, profile, methods, chunk_bytes):
 
 
 @pytest.mark.parametrize("chunk_bytes", CHUNKS[:2])
-def test_every_method_streamed_equals_the_whole_log_run(codec_drives, profile, chunk_bytes):
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_every_method_streamed_equals_the_whole_log_run(codec_drives, profile, chunk_bytes,
+                                                        threads, monkeypatch):
     """The codec drives (a corner, friction jumps, a drift), every registered method incl.
     the ensemble: chunk boundaries fall between ticks, between a tick and the frames that
-    share its time, and inside every method's settling."""
+    share its time, and inside every method's settling. With one replay thread (every stage
+    in turn) and with two (stages and the methods' raw runs on threads)."""
+    monkeypatch.setenv(THREADS_VARIABLE, threads)
     for drive in codec_drives.values():
         chunks = assert_stream_is_whole(drive.log, profile, available(), chunk_bytes)
         assert len(chunks) > 3
@@ -193,6 +198,103 @@ def test_methods_sharing_a_witness_step_it_once(profile, codec_drives, monkeypat
     witness = Pipeline("kinematic_heuristic", profile).witness_key
     assert Pipeline("d_ekf", profile).method_key == witness
     assert Pipeline("d_ekf", profile, {"r_vx": 3e-3}).method_key != witness
+
+
+def test_one_replay_thread_runs_every_stage_in_the_caller(codec_drives, profile,
+                                                          monkeypatch):
+    """SLIPD_REPLAY_THREADS=1 (a Dask worker with a core of its own): no stage thread, no
+    method pool; the same rows as with threads."""
+    import threading
+
+    log = codec_drives["mu_jump"].log
+    methods = ["kinematic_heuristic", "d_ekf"]
+    threaded = [c.outputs for c in LogStream(log, profile, methods, chunk_bytes=1 << 16)]
+    monkeypatch.setenv(THREADS_VARIABLE, "1")
+    ran_on = set()  # the threads the methods ran on
+    original = Pipeline._run_method
+    monkeypatch.setattr(Pipeline, "_run_method", lambda self, *args: (
+        ran_on.add(threading.current_thread()), original(self, *args))[1])
+    before = set(threading.enumerate())  # (an earlier test's method pool may be idle here)
+    stream = LogStream(log, profile, methods, chunk_bytes=1 << 16)
+    assert not stream.runs.parallel
+    alone, started = [], set()
+    for chunk in stream:
+        alone.append(chunk.outputs)
+        started.update(set(threading.enumerate()) - before)
+    assert ran_on == {threading.current_thread()}
+    assert not started, started
+    assert len(alone) == len(threaded) > 3
+    for a, b in zip(alone, threaded, strict=True):
+        for m in methods:
+            assert np.array_equal(a[m], b[m], equal_nan=True)
+
+
+def test_the_replay_threads_setting_is_checked(monkeypatch):
+    from slipd.replay.ahead import replay_threads
+
+    for bad in ("0", "two", "-1", "1.5"):
+        monkeypatch.setenv(THREADS_VARIABLE, bad)
+        with pytest.raises(ConfigError, match=f"{THREADS_VARIABLE}='{bad}': expected an integer"):
+            replay_threads()
+    monkeypatch.setenv(THREADS_VARIABLE, " 3 ")
+    assert replay_threads() == 3
+
+
+def test_the_replay_kernels_release_the_gil():
+    """Every kernel a replay's stage threads run releases the GIL (numba nogil): one that
+    does not holds the other stages' threads while it runs, and the threads only take turns."""
+    from slipd.codec import kernels
+    from slipd.estimators import consistency, registry, supervision
+    from slipd.replay import candump
+
+    dispatchers = {"parse": candump._parse, "latch_ticks": kernels.latch_ticks,
+                   "supervise_ticks": supervision.supervise_ticks,
+                   "monitor_ticks": consistency.monitor_ticks}
+    dispatchers.update({f"{name}.run_ticks": registry.load(name).run_ticks
+                        for name in available()})
+    holding = [name for name, kernel in dispatchers.items()
+               if not kernel.targetoptions.get("nogil")]
+    assert not holding
+
+
+def test_a_forked_child_steps_its_methods_on_threads_of_its_own(codec_drives, profile,
+                                                               monkeypatch):
+    """A Dask worker forked from slipd's forkserver after the parent ran methods on its pool:
+    the parent's pool threads do not exist in the child, so the child makes its own pool
+    (a pool inherited by fork would take its work and never run it)."""
+    import multiprocessing
+
+    monkeypatch.setenv(THREADS_VARIABLE, "2")
+    log = codec_drives["mu_jump"].log
+    methods = ["kinematic_heuristic", "k_kf"]
+    parent = [c.outputs for c in LogStream(log, profile, methods, chunk_bytes=1 << 16)]
+    context = multiprocessing.get_context("fork")
+    results = context.Queue()
+
+    def child() -> None:
+        stream = LogStream(log, profile, methods, chunk_bytes=1 << 16)
+        results.put((stream.runs.parallel, [c.outputs for c in stream]))
+
+    process = context.Process(target=child)
+    process.start()
+    try:
+        parallel, outputs = results.get(timeout=120)
+    finally:
+        process.join(10)
+        if process.is_alive():
+            process.kill()
+    assert parallel and process.exitcode == 0
+    for a, b in zip(outputs, parent, strict=True):
+        for m in methods:
+            assert np.array_equal(a[m], b[m], equal_nan=True)
+
+
+def test_methods_run_on_threads_only_with_two_raw_runs(profile, monkeypatch):
+    monkeypatch.setenv(THREADS_VARIABLE, "2")
+    assert MethodRuns(profile, ["kinematic_heuristic"]).parallel  # itself and its witness
+    assert not MethodRuns(profile, ["linear_kf"], parallel=False).parallel
+    monkeypatch.setenv(THREADS_VARIABLE, "1")
+    assert not MethodRuns(profile, ["kinematic_heuristic", "k_kf"]).parallel
 
 
 def load(name):

@@ -374,7 +374,7 @@ def monitor(state, u, out, witness, params, vehicle, dt):
     state[S.NIS_RATIO] = nis_ratio
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def monitor_ticks(state, U, OUT, WITNESS, params, vehicle, tick_dt):
     """``monitor`` over a recording: ``tick_dt[k]`` is the time of tick k's steps (dt times
     its catch-up steps)."""

@@ -259,7 +259,7 @@ def step(state, u, params, vehicle, dt, out):
     out[Out.NIS] = state[S.NIS_MEAN]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

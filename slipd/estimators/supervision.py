@@ -117,7 +117,7 @@ def supervise(u, plan, out):
     out[Out.STATUS] = float(status)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def supervise_ticks(U, plan, OUT):
     for k in range(U.shape[0]):
         supervise(U[k], plan, OUT[k])

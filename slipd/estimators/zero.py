@@ -44,7 +44,7 @@ def step(state, u, params, vehicle, dt, out):
     write_outputs(out, 0.0, 0.0, vx, 0.0, math.nan, math.nan, 0.0, 0.0, status)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

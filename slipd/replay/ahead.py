@@ -6,10 +6,17 @@ read and parse, decode and latch, estimate, write. Their kernels release the GIL
 ``nogil``, pyarrow's writers), so a stage running in its own thread overlaps with the stages
 after it on another core, while the order of the chunks, and so every output byte, stays the
 sequential run's. Measured in ``benchmarks/replay.py``.
+
+The threads a replay may use are :func:`replay_threads` (``$SLIPD_REPLAY_THREADS``, else the
+cores this process may run on). With one, every stage runs in the caller's thread, in the
+same order: a Dask worker of a cluster that has a worker process per core (``--dask
+local:2`` here) has one core of its own, and threads of its stages would only take turns on
+it with the other workers' (benchmarks/fleet.py measures both).
 """
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 from collections import deque
@@ -22,12 +29,37 @@ R = TypeVar("R")
 
 _DONE = object()
 
+#: environment variable: the threads a replay may run its stages on (1: none but the caller)
+THREADS_VARIABLE = "SLIPD_REPLAY_THREADS"
 
-def ahead(items: Iterable[T], depth: int = 1, name: str = "slipd ahead") -> Iterator[T]:
+
+def replay_threads() -> int:
+    """Threads a replay in this process may run its stages on: ``$SLIPD_REPLAY_THREADS``
+    (an integer >= 1), else the CPUs this process may run on."""
+    value = os.environ.get(THREADS_VARIABLE, "").strip()
+    if not value:
+        try:
+            return max(1, len(os.sched_getaffinity(0)))
+        except (AttributeError, OSError):  # not Linux
+            return max(1, os.cpu_count() or 1)
+    if not value.isdigit() or int(value) < 1:
+        from slipd.errors import ConfigError
+
+        raise ConfigError(f"{THREADS_VARIABLE}={value!r}: expected an integer >= 1 (the "
+                          "threads a replay may use; 1: every stage in one thread)")
+    return int(value)
+
+
+def ahead(items: Iterable[T], depth: int = 1, name: str = "slipd ahead",
+          threaded: bool | None = None) -> Iterator[T]:
     """The items of ``items``, in order, produced by a thread at most ``depth`` items ahead
     of the caller (memory: ``depth`` + 2 items at a time). An exception ``items`` raises is
     raised here, after the items before it. Closing this generator early (a consumer's error,
-    ``break``) stops the thread and closes ``items``."""
+    ``break``) stops the thread and closes ``items``. ``threaded`` False (default: whether
+    :func:`replay_threads` > 1): the items are made in the caller's thread."""
+    if not (replay_threads() > 1 if threaded is None else threaded):
+        yield from items
+        return
     results: queue.Queue = queue.Queue(maxsize=max(1, depth))
     stop = threading.Event()
 
@@ -69,14 +101,26 @@ def ahead(items: Iterable[T], depth: int = 1, name: str = "slipd ahead") -> Iter
 
 
 def ahead_map(function: Callable[[T], R], items: Iterable[T], workers: int = 2,
-              depth: int | None = None, name: str = "slipd map") -> Iterator[R]:
+              depth: int | None = None, name: str = "slipd map",
+              threaded: bool | None = None) -> Iterator[R]:
     """``function(item)`` of each of ``items``, in order, computed by ``workers`` threads
     (``function`` should release the GIL: a numba ``nogil`` kernel), at most ``depth``
     (default ``workers + 1``) items submitted and not yet handed out. ``items`` is advanced in
     the caller's thread, and only while fewer than ``depth`` are in flight, so an item may
     reuse a buffer of the ``depth + 1``-th item before it. An exception of ``function`` is
     raised here, after the results before it; closing this generator early cancels what has
-    not started and waits for what has (it may still be using its item's buffer)."""
+    not started and waits for what has (it may still be using its item's buffer).
+    ``threaded`` False (default: whether :func:`replay_threads` > 1): ``function`` is called
+    in the caller's thread, item by item."""
+    if not (replay_threads() > 1 if threaded is None else threaded):
+        iterator = iter(items)
+        try:
+            yield from map(function, iterator)
+        finally:
+            close = getattr(iterator, "close", None)
+            if close is not None:
+                close()
+        return
     depth = max(1, depth if depth is not None else workers + 1)
     pool = ThreadPoolExecutor(max(1, workers), thread_name_prefix=name)
     pending: deque[Future] = deque()

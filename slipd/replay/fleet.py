@@ -45,6 +45,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from slipd.errors import ConfigError, SlipdError
+from slipd.replay.ahead import THREADS_VARIABLE, replay_threads
 
 ESTIMATES = "estimates"
 SUMMARY = "summary.parquet"
@@ -99,7 +100,8 @@ def dask_client(spec: str, methods: list[str], profile: str) -> Iterator:
             with _forkserver_with_kernels(methods, profile):
                 cluster = LocalCluster(n_workers=int(value), threads_per_worker=1,
                                        processes=True, host="127.0.0.1",
-                                       dashboard_address=None, silence_logs=40)
+                                       dashboard_address=None, silence_logs=40,
+                                       env={THREADS_VARIABLE: str(_threads_each(int(value)))})
             client = Client(cluster)
         else:
             client = Client(str(value), timeout=30)
@@ -114,6 +116,13 @@ def dask_client(spec: str, methods: list[str], profile: str) -> Iterator:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _threads_each(workers: int) -> int:
+    """Replay threads of each of a local cluster's ``workers`` processes: the CPUs shared out
+    (one each when there are as many workers as CPUs: their stages then run in turn in the
+    worker's thread instead of taking turns on the cores with the other workers')."""
+    return max(1, replay_threads() // max(workers, 1))
 
 
 @contextlib.contextmanager
@@ -209,6 +218,8 @@ class LogRecord:
     valid_share: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
     worker: str = ""
+    #: the threads the replay ran its stages on (slipd.replay.ahead.replay_threads)
+    threads: int = 0
     #: the worker process's peak RSS so far (MB) when the log was done
     peak_rss_mb: float = 0.0
     status: str = "ok"  # ok | skipped (--resume: done before) | failed
@@ -238,6 +249,7 @@ def replay_log(job: LogJob) -> LogRecord:
     record = LogRecord(job.log, job.key, profile=job.profile, methods=",".join(job.methods),
                        options=job.options, worker=f"{socket.gethostname()}:{os.getpid()}")
     try:
+        record.threads = replay_threads()
         stat = path.stat()
         record.size_bytes, record.mtime_ns = stat.st_size, stat.st_mtime_ns
         _replay_into(job, record, started)

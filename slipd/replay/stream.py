@@ -37,8 +37,10 @@ import gzip
 import hashlib
 import itertools
 import os
+import threading
 import zlib
 from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,7 +51,7 @@ from slipd.codec import Codec, kernels
 from slipd.errors import ConfigError, LogFormatError
 from slipd.pipeline import TICK_DT, Pipeline, RawRuns, steps_per_tick
 from slipd.profile import Profile, load_profile
-from slipd.replay.ahead import ahead, ahead_map
+from slipd.replay.ahead import ahead, ahead_map, replay_threads
 from slipd.replay.candump import (
     FLAG_TX,
     MAX_CHANNELS,
@@ -71,8 +73,9 @@ from slipd.replay.engine import (
 #: loaded kernels), at the same speed.
 CHUNK_BYTES = 4 << 20
 #: Threads parsing a candump log's blocks at once (line blocks are independent; the parse
-#: kernel releases the GIL): two, measured on 2 cores, and never more than the cores.
-PARSE_WORKERS = max(1, min(2, os.cpu_count() or 1))
+#: kernel releases the GIL): two, measured on 2 cores, and never more than the replay's
+#: threads (slipd.replay.ahead.replay_threads).
+PARSE_WORKERS = 2
 #: Bytes of a candump line, for sizing chunks of the formats read message by message.
 _LINE_BYTES = 36
 
@@ -196,13 +199,14 @@ def frame_chunks(path: str | Path, skip_bad: bool = False, chunk_bytes: int = CH
         digest = hashlib.sha256() if checksum else None
         # blocks read by a thread of their own and parsed by PARSE_WORKERS threads (the
         # kernel releases the GIL); the caller (the latch thread) only takes the frames
-        blocks = line_blocks(path, chunk_bytes, digest, buffers=PARSE_WORKERS + 2)
+        workers = min(PARSE_WORKERS, replay_threads())
+        blocks = line_blocks(path, chunk_bytes, digest, buffers=workers + 2)
 
         def parse(block: tuple[np.ndarray, int, int]) -> Frames:
             text, first_line, newlines = block
             return parse_candump(text, str(path), skip_bad, first_line, newlines=newlines)
 
-        parsed = ahead_map(parse, blocks, PARSE_WORKERS, PARSE_WORKERS + 1, f"parse {path}")
+        parsed = ahead_map(parse, blocks, workers, workers + 1, f"parse {path}")
         for frames in ahead(parsed, 1, f"read {path}"):
             yield stats.adopt(frames)
         if digest is not None:
@@ -474,11 +478,19 @@ class Latcher:
 
 
 class MethodRuns:
-    """Methods stepping through a log's chunks: one Pipeline and one carried state each."""
+    """Methods stepping through a log's chunks: one Pipeline and one carried state each.
+
+    A chunk's raw runs (each method, and its consistency witness, once per distinct run:
+    :class:`~slipd.pipeline.RawRuns`) are independent until supervision, and their kernels
+    release the GIL: with more than one replay thread (``parallel``, default
+    ``replay_threads() > 1``) they run on a pool of that many threads, and
+    each pipeline's supervision and monitor then take them in the caller's thread, in the
+    methods' order: the same outputs, bit for bit, as one thread."""
 
     def __init__(self, profile: Profile, methods: Iterable[str],
                  overrides: dict[str, float] | None = None, dt: float = TICK_DT,
-                 pipelines: dict[str, Pipeline] | None = None):
+                 pipelines: dict[str, Pipeline] | None = None,
+                 parallel: bool | None = None):
         """``pipelines``: ones built before for this profile, overrides and dt (a Pipeline
         keeps no state of a run: a worker replaying many logs builds each once)."""
         built = pipelines if pipelines is not None else {}
@@ -487,14 +499,71 @@ class MethodRuns:
         self.states = {name: p.new_state() for name, p in self.pipelines.items()}
         #: raw runs more than one method needs (the witness): each made once per chunk
         self.shared = RawRuns.shared_keys(self.pipelines.values())
+        self.threads = replay_threads() if parallel is not False else 1
+        if parallel is None and self.threads > 1:
+            self.parallel = sum(1 for _ in self._jobs()) > 1
+        else:
+            self.parallel = bool(parallel) and self.threads > 1
 
     def run(self, inputs: Inputs) -> dict[str, np.ndarray]:
         """Each method's supervised outputs [n_ticks, N_OUT] on a chunk's inputs."""
         if not len(inputs.t):
             return {name: np.zeros((0, N_OUT)) for name in self.pipelines}
-        raw = RawRuns(self.shared) if self.shared else None
+        if self.parallel:
+            raw = self._raw_on_threads(inputs)
+        else:
+            raw = RawRuns(self.shared) if self.shared else None
         return {name: p.run(inputs.U, inputs.steps, self.states[name], raw)
                 for name, p in self.pipelines.items()}
+
+    def _jobs(self) -> Iterator[tuple[tuple, Pipeline, object, np.ndarray]]:
+        """Each distinct raw run of a chunk: (key, a pipeline that makes it, the method, its
+        state part in that pipeline's carried state)."""
+        seen = set()
+        for name, pipeline in self.pipelines.items():
+            for key, method, part in pipeline.raw_jobs(self.states[name]):
+                if key not in seen:
+                    seen.add(key)
+                    yield key, pipeline, method, part
+
+    def _raw_on_threads(self, inputs: Inputs) -> RawRuns:
+        jobs = list(self._jobs())
+
+        def run(job) -> tuple[tuple, np.ndarray, np.ndarray]:
+            key, pipeline, method, part = job
+            state = part.copy()  # every pipeline takes the state after from the RawRuns
+            return key, pipeline.raw_run(method, state, inputs.U, inputs.steps), state
+
+        raw = RawRuns({job[0] for job in jobs})
+        for key, out, state in _method_pool(self.threads).map(run, jobs):
+            raw.runs[key] = (out, state)
+        return raw
+
+
+_POOL: tuple[int, ThreadPoolExecutor] | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _method_pool(threads: int) -> ThreadPoolExecutor:
+    """The process's pool for methods' raw runs (made on first use; a forked child, such as
+    a Dask worker forked from slipd's forkserver, makes its own: a parent's pool threads do
+    not exist in the child)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None or _POOL[0] != threads:
+            if _POOL is not None:
+                _POOL[1].shutdown(wait=False)  # its queued runs still finish
+            _POOL = (threads, ThreadPoolExecutor(threads, thread_name_prefix="slipd method"))
+        return _POOL[1]
+
+
+def _forget_pool() -> None:
+    global _POOL, _POOL_LOCK
+    _POOL, _POOL_LOCK = None, threading.Lock()  # the parent's lock may be held at the fork
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
 
 
 @dataclass

@@ -449,7 +449,7 @@ def step(state, u, params, vehicle, dt, out):
     _write(out, beta, vx, ax, ay, yaw_rate, sigma, roll, status)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

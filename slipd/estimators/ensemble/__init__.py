@@ -355,7 +355,7 @@ def fuse_tick(state, u, params, dt, out):
     fuse(state, params[FUSION_PARAMS.SIGMA_FLOOR] ** 2, out)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

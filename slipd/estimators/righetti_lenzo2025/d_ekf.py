@@ -79,7 +79,7 @@ def step(state, u, params, vehicle, dt, out):
                           state[_DYN_P_VV], ax, ay, yaw_rate, params, status)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

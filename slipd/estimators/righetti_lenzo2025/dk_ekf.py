@@ -97,7 +97,7 @@ def step(state, u, params, vehicle, dt, out):
                           state[_KIN_P + 1], state[_KIN_P + 2], ax, ay, yaw_rate, params, status)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

@@ -89,7 +89,7 @@ def step(state, u, params, vehicle, dt, out):
                           params, status)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

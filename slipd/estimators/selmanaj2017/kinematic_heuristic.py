@@ -546,7 +546,7 @@ def _write(state, params, out, status):
     )  # fmt: skip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     """Batch loop: ``step`` on every row of ``U`` (n, U_LEN) into ``OUT`` (n, N_OUT)."""
     for k in range(U.shape[0]):

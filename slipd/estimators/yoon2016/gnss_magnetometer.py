@@ -430,13 +430,13 @@ def step(state, u, params, vehicle, dt, out):
     )  # fmt: skip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def run_ticks_diagnostic(state, U, params, vehicle, dt, OUT, DIAG):
     """``run_ticks`` that also records, per tick, DIAG[k] = (psi, phi, d^2 of the newest
     magnetometer sample, total rejected samples, mu, calibration samples[, pitch, accepted
