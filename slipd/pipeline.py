@@ -196,12 +196,12 @@ class Pipeline:
             jobs.append((self.witness_key, self.witness, witness_state))
         return jobs
 
-    def raw_run(self, method, state: np.ndarray, U: np.ndarray,
+    def raw_run(self, method, state: np.ndarray, stepped: np.ndarray,
                 steps: np.ndarray | None = None) -> np.ndarray:
-        """``method``'s raw outputs [n, N_OUT] on the ticks ``U`` (one of ``raw_jobs``),
-        advancing ``state`` (a copy of the job's part, which ``run`` then takes from the
+        """``method``'s raw outputs [n_ticks, N_OUT] (one of ``raw_jobs``) on ``stepped``,
+        the ticks' inputs repeated per step (``U`` when ``steps`` is None), advancing
+        ``state`` (a copy of the job's part, which ``run`` then takes from the
         :class:`RawRuns`)."""
-        stepped = U if steps is None else np.repeat(U, steps, axis=0)
         return self._run_method(method, state, stepped, steps)
 
     def _run_method(self, method, state, stepped, steps) -> np.ndarray:
@@ -217,8 +217,10 @@ class RawRuns:
     that several pipelines of one replay need: d_ekf is the consistency witness of every other
     method and a method of its own, so ``--estimator all`` stepped it 14 times per tick for one
     result. ``keys``: the ``method_key``/``witness_key`` that more than one role uses (the
-    rest are not kept). Valid for one call of ``Pipeline.run`` per pipeline, all on the same
-    ticks from states that agree on the shared parts (fresh states, or ones that only such
+    rest are not kept, unless put in ``runs`` beforehand, as a replay running them on
+    threads does: such an output is then handed to its one pipeline without a copy). Valid
+    for one call of ``Pipeline.run`` per pipeline, all on the same ticks from states that
+    agree on the shared parts (fresh states, or ones that only such
     runs have advanced)."""
 
     def __init__(self, keys: set):

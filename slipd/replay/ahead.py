@@ -50,6 +50,10 @@ def replay_threads() -> int:
     return int(value)
 
 
+def _threaded(threaded: bool | None) -> bool:
+    return replay_threads() > 1 if threaded is None else threaded
+
+
 def ahead(items: Iterable[T], depth: int = 1, name: str = "slipd ahead",
           threaded: bool | None = None) -> Iterator[T]:
     """The items of ``items``, in order, produced by a thread at most ``depth`` items ahead
@@ -57,7 +61,7 @@ def ahead(items: Iterable[T], depth: int = 1, name: str = "slipd ahead",
     raised here, after the items before it. Closing this generator early (a consumer's error,
     ``break``) stops the thread and closes ``items``. ``threaded`` False (default: whether
     :func:`replay_threads` > 1): the items are made in the caller's thread."""
-    if not (replay_threads() > 1 if threaded is None else threaded):
+    if not _threaded(threaded):
         yield from items
         return
     results: queue.Queue = queue.Queue(maxsize=max(1, depth))
@@ -112,7 +116,7 @@ def ahead_map(function: Callable[[T], R], items: Iterable[T], workers: int = 2,
     not started and waits for what has (it may still be using its item's buffer).
     ``threaded`` False (default: whether :func:`replay_threads` > 1): ``function`` is called
     in the caller's thread, item by item."""
-    if not (replay_threads() > 1 if threaded is None else threaded):
+    if not _threaded(threaded):
         iterator = iter(items)
         try:
             yield from map(function, iterator)

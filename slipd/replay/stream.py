@@ -499,11 +499,9 @@ class MethodRuns:
         self.states = {name: p.new_state() for name, p in self.pipelines.items()}
         #: raw runs more than one method needs (the witness): each made once per chunk
         self.shared = RawRuns.shared_keys(self.pipelines.values())
-        self.threads = replay_threads() if parallel is not False else 1
-        if parallel is None and self.threads > 1:
-            self.parallel = sum(1 for _ in self._jobs()) > 1
-        else:
-            self.parallel = bool(parallel) and self.threads > 1
+        self.threads = replay_threads()
+        wanted = sum(1 for _ in self._jobs()) > 1 if parallel is None else parallel
+        self.parallel = wanted and self.threads > 1
 
     def run(self, inputs: Inputs) -> dict[str, np.ndarray]:
         """Each method's supervised outputs [n_ticks, N_OUT] on a chunk's inputs."""
@@ -527,15 +525,16 @@ class MethodRuns:
                     yield key, pipeline, method, part
 
     def _raw_on_threads(self, inputs: Inputs) -> RawRuns:
-        jobs = list(self._jobs())
+        steps = inputs.steps
+        stepped = inputs.U if steps is None else np.repeat(inputs.U, steps, axis=0)
 
         def run(job) -> tuple[tuple, np.ndarray, np.ndarray]:
             key, pipeline, method, part = job
             state = part.copy()  # every pipeline takes the state after from the RawRuns
-            return key, pipeline.raw_run(method, state, inputs.U, inputs.steps), state
+            return key, pipeline.raw_run(method, state, stepped, steps), state
 
-        raw = RawRuns({job[0] for job in jobs})
-        for key, out, state in _method_pool(self.threads).map(run, jobs):
+        raw = RawRuns(self.shared)  # the shared outputs are copied, the others handed over
+        for key, out, state in _method_pool(self.threads).map(run, list(self._jobs())):
             raw.runs[key] = (out, state)
         return raw
 
