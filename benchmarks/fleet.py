@@ -124,11 +124,10 @@ def joined(sources: list[Path], path: Path, gap: float = 1.0) -> Path:
 def drives(logs: list[Path], minutes: float, folder: Path) -> list[Path]:
     """As many logs as ``logs``, each a drive of ``minutes``: log k followed by k + 1, k + 2, ...
     (in turn) until it lasts that long. Fleet logs are drives of minutes to hours; the suite's
-    scenarios last 10-60 s."""
-
+    scenarios last 10-60 s. Read and written in one child process."""
     spans = in_child(log_spans, logs)
     folder.mkdir(parents=True, exist_ok=True)
-    out = []
+    out, missing = [], []
     for k in range(len(logs)):
         parts, total, j = [], 0.0, k
         while total < 60.0 * minutes:
@@ -137,9 +136,17 @@ def drives(logs: list[Path], minutes: float, folder: Path) -> list[Path]:
             j += 1
         path = folder / f"drive{k:03d}.log"
         if not path.exists():
-            in_child(joined, parts, path)
+            missing.append((parts, path))
         out.append(path)
+    if missing:
+        in_child(join_each, missing)
     return out
+
+
+def join_each(jobs: list[tuple[list[Path], Path]]) -> None:
+    """``joined(sources, path)`` for each (sources, path)."""
+    for sources, path in jobs:
+        joined(sources, path)
 
 
 def log_spans(logs: list[Path]) -> list[float]:
