@@ -8,7 +8,13 @@ deleted). On a car that is an upgrade away from running old code silently. A dir
 source hash makes any change a fresh cache; identical sources (a CI clone, the VM guest)
 share one. Base: $NUMBA_CACHE_DIR, else $XDG_CACHE_HOME/slipd/numba.
 
-Who sets it (importing slipd sets nothing, :mod:`slipd` must stay a library):
+Every way in: slipd's kernel modules import numba as ``from slipd.numba_cache import nb``,
+which installs a cache locator for slipd's own files first in numba's list (``SourceKeyedLocator``
+in :func:`_install_locator`): their cache directory is the keyed one under numba's configured
+directory, else under the XDG cache, even for a script that imports a kernel module directly
+(numba's default would put it in the module's ``__pycache__``, keyed to that file alone); a
+user's own ``cache=True`` functions keep numba's locators. On top of that (importing slipd
+sets nothing, :mod:`slipd` must stay a library):
 
 * the ``slipd`` command (daemon included) and the test suite call :func:`use_keyed_cache`,
   which sets ``NUMBA_CACHE_DIR`` for the process and the processes it starts;
@@ -103,3 +109,67 @@ def _prune_old_keys(base: Path, key: str, keep_days: float = 7.0) -> None:
                 shutil.rmtree(entry, ignore_errors=True)
         except OSError:
             continue
+
+
+# ---------------------------------------------------------------------------------------------
+# numba's cache locator for slipd's kernel files
+# ---------------------------------------------------------------------------------------------
+
+
+def _is_slipd_source(py_file: str) -> bool:
+    try:
+        return Path(py_file).resolve().is_relative_to(_ROOT.resolve())
+    except (OSError, ValueError):
+        return False
+
+
+def _install_locator(caching) -> None:
+    """Put a locator for slipd's own kernel files first in numba's cache locators: their cache
+    directory is :func:`keyed_dir` of numba's configured one, whoever imported them (the
+    command, the API, the tests or a user's script that imports a kernel module directly,
+    which numba's default would cache in the module's ``__pycache__``, keyed to that file
+    alone). Every other function keeps numba's locators."""
+    from numba.core import config
+
+    # numba 0.68 names the class CacheImpl, earlier releases _CacheImpl
+    impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl
+    classes = impl._locator_classes
+    if any(getattr(cls, "slipd_source_keyed", False) for cls in classes):
+        return
+
+    class SourceKeyedLocator(caching.UserProvidedCacheLocator):
+        """numba's locator for a configured cache directory, the directory keyed to slipd's
+        sources (numba's own stamp stays: the kernel file's hash)."""
+
+        slipd_source_keyed = True
+
+        def __init__(self, py_func, py_file):
+            self._py_file = py_file
+            self._lineno = py_func.__code__.co_firstlineno
+            self._cache_path = os.path.join(keyed_dir(config.CACHE_DIR or None),
+                                            self.get_suitable_cache_subpath(py_file))
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if not _is_slipd_source(py_file):
+                return None
+            # numba's source-file check and writable-directory test, without the
+            # UserProvidedCacheLocator's "only when CACHE_DIR is set"
+            return super(caching.UserProvidedCacheLocator, cls).from_function(py_func, py_file)
+
+    classes.insert(0, SourceKeyedLocator)
+
+
+def __getattr__(name: str):
+    """``nb``: numba itself, with slipd's cache locator installed first. slipd's kernel modules
+    import numba as ``from slipd.numba_cache import nb`` (tests/test_api.py checks that each
+    does), so no way of importing them caches a kernel where a change of another slipd module
+    leaves it stale; importing this module alone still imports no numba (the command calls
+    :func:`use_keyed_cache` before anything else)."""
+    if name == "nb":
+        import numba
+        from numba.core import caching
+
+        _install_locator(caching)
+        return numba
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

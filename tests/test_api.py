@@ -90,6 +90,56 @@ print(os.environ["NUMBA_CACHE_DIR"])
     assert out == str(tmp_path / source_key())
 
 
+def test_a_script_that_imports_a_kernel_module_directly_caches_it_under_the_source_key(tmp_path):
+    """Neither the command nor the API: numba's default would cache in the module's
+    __pycache__, keyed to that file alone, and a kernel inlining another slipd module would
+    run stale code after an upgrade. A user's own cache=True function keeps numba's locator."""
+    from slipd.numba_cache import source_key
+
+    user = tmp_path / "user_kernels.py"
+    user.write_text("import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
+    code = f"""
+import json, sys
+sys.path.insert(0, {str(tmp_path)!r})
+from slipd.estimators.righetti_lenzo2025 import d_ekf
+from slipd.estimators import supervision
+from slipd.sim import mb_fast
+import user_kernels
+print(json.dumps({{"d_ekf": d_ekf.run_ticks._cache._cache_path,
+                  "supervise": supervision.supervise._cache._cache_path,
+                  "plant": [getattr(mb_fast, n)._cache._cache_path for n in dir(mb_fast)
+                            if hasattr(getattr(mb_fast, n), "_cache")][0],
+                  "user": user_kernels.twice._cache._cache_path}}))
+"""
+    xdg = tmp_path / "xdg"
+    paths = json.loads(_python(code, _clean_env(XDG_CACHE_HOME=str(xdg))).splitlines()[-1])
+    keyed = os.path.join(str(xdg), "slipd", "numba", source_key()) + os.sep
+    for kernel in ("d_ekf", "supervise", "plant"):
+        assert paths[kernel].startswith(keyed), paths
+    assert paths["user"] == str(tmp_path / "__pycache__")
+
+
+def test_every_cached_kernel_module_imports_numba_through_the_keyed_locator():
+    """The locator is installed when numba is imported as ``from slipd.numba_cache import nb``;
+    a module importing numba itself could decorate its kernels before that."""
+    import ast
+
+    offenders = []
+    for path in sorted((ROOT / "slipd").rglob("*.py")):
+        if path.name == "numba_cache.py":
+            continue
+        tree = ast.parse(path.read_text())
+        cached = any(isinstance(node, ast.keyword) and node.arg == "cache"
+                     for node in ast.walk(tree))
+        direct = any(isinstance(node, ast.Import) and any(a.name.split(".")[0] == "numba"
+                                                           for a in node.names)
+                     or isinstance(node, ast.ImportFrom) and (node.module or "").startswith("numba")
+                     for node in ast.walk(tree))
+        if cached and direct:
+            offenders.append(str(path.relative_to(ROOT)))
+    assert not offenders, f"import numba as `from slipd.numba_cache import nb` in {offenders}"
+
+
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory):
     folder = tmp_path_factory.mktemp("api")

@@ -25,10 +25,10 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import N_IN, WHEEL_SPEEDS, G, In
+from slipd.numba_cache import nb
 from slipd.profile import Calibration
 
 CAL_ACTIVE = 0  # 1.0: correct, 0.0: identity (leave u untouched)

@@ -32,11 +32,11 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.codec.calibration import calibrate
 from slipd.codec.e2e import CRC8_H2F, CRC8_SAE_J1850, CRC16_XMODEM, HKG_CANFD_XOR
+from slipd.numba_cache import nb
 
 MAX_PAYLOAD = 64  # bytes: CAN FD
 FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)

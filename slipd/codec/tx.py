@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.channels import ST_VALID, Out
 from slipd.codec.plan import Tx
+from slipd.numba_cache import nb
 
 _COPIED = int(Out.STATUS) + 1
 _FINITE_SLOTS = (int(Tx.BETA), int(Tx.BETA_RATE), int(Tx.VX), int(Tx.VY), int(Tx.SIGMA_BETA),

@@ -90,7 +90,6 @@ from __future__ import annotations
 import enum
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import (
@@ -109,6 +108,7 @@ from slipd.estimators.common.filters import derivative_filter, lowpass
 from slipd.estimators.common.kinematics import translate_to_cog_planar
 from slipd.estimators.common.layout import build_layout
 from slipd.estimators.common.params import build_params
+from slipd.numba_cache import nb
 
 PARAMS, DEFAULTS = build_params(
     "consistency",

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import (
@@ -73,6 +72,7 @@ from slipd.estimators.common.layout import build_layout
 from slipd.estimators.common.outputs import held_sigma, write_held, write_outputs
 from slipd.estimators.common.params import build_params
 from slipd.estimators.common.vehicle import require_vehicle
+from slipd.numba_cache import nb
 
 PARAMS, DEFAULTS = build_params(
     "linear_kf",

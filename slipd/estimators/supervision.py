@@ -18,7 +18,6 @@ import enum
 import math
 from collections.abc import Iterable
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import (
@@ -32,6 +31,7 @@ from slipd.channels import (
     Out,
 )
 from slipd.codec.plan import Tx
+from slipd.numba_cache import nb
 
 #: A method's own status bits any of which keeps a frame from being VALID.
 BLOCKING = ST_INPUT_TIMEOUT | ST_NOT_CONVERGED | ST_UNAVAILABLE | ST_RESET

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import ST_INPUT_TIMEOUT, In
@@ -18,6 +17,7 @@ from slipd.estimators.common.inputs import channel
 from slipd.estimators.common.layout import build_layout
 from slipd.estimators.common.outputs import write_outputs
 from slipd.estimators.common.params import build_params
+from slipd.numba_cache import nb
 
 PARAMS, DEFAULTS = build_params("zero", ("UNUSED", 0.0))
 LAYOUT = build_layout("zero", "UNUSED")

@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
+
+from slipd.numba_cache import nb
 
 #: partials a finite float64 sum can need (2098 bits of exponent range / 53, rounded up)
 _PARTIALS = 48

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import G, In, Veh
@@ -48,6 +47,7 @@ from slipd.identify.results import (
     bootstrap,
     percentile_interval,
 )
+from slipd.numba_cache import nb
 
 SOURCE = ("output-error fit of the linear single-track model (Rajamani 2012, ch. 2.3, eq. "
           "2.31) to yaw rate and lateral acceleration")

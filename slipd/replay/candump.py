@@ -24,10 +24,10 @@ import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numba as nb
 import numpy as np
 
 from slipd.errors import LogFormatError
+from slipd.numba_cache import nb
 
 FLAG_EXTENDED = 1
 FLAG_REMOTE = 2

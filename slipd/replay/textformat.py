@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
+
+from slipd.numba_cache import nb
 
 #: a column's kind in ``decimals``: >= 0 digits after the point, or one of these
 INTEGER = -1

@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
+
+from slipd.numba_cache import nb as numba
 
 _P_NAMES = (
     "m", "m_s", "m_uf", "m_ur", "a", "b", "I_Phi_s", "I_y_s", "I_z", "I_xz_s", "K_sf", "K_sdf",

@@ -16,10 +16,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from slipd.channels import In
+from slipd.numba_cache import nb as numba
 from slipd.sim.plant import (
     ISO_WHEEL_STATES,
     PITCH,

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.channels import In, Veh
 from slipd.estimators.carnier2023.observer import TYRE0, S, tyre_coefficients, tyre_force
 from slipd.estimators.common.inputs import channel
 from slipd.estimators.common.tyres import static_wheel_loads
 from slipd.estimators.common.tyres import wheel_loads as rigid_wheel_loads
+from slipd.numba_cache import nb
 
 #: Burckhardt (1993) tyre-road characteristics, mu(lambda) = c1 (1 - exp(-c2 lambda)) - c3 lambda,
 #: as tabulated e.g. by Kiencke & Nielsen, "Automotive Control Systems" (Table 7.1).

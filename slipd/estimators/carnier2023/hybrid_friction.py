@@ -101,7 +101,6 @@ from __future__ import annotations
 import enum
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, Veh
@@ -129,6 +128,7 @@ from slipd.estimators.common.inputs import (
 from slipd.estimators.common.kinematics import compensate_wheel_speeds, kinematic_beta_rate
 from slipd.estimators.common.outputs import held_sigma, write_outputs
 from slipd.estimators.common.vehicle import require_vehicle
+from slipd.numba_cache import nb
 
 DEG = math.pi / 180.0
 

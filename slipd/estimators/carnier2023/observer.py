@@ -37,7 +37,6 @@ from __future__ import annotations
 import enum
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import G, Veh
@@ -45,6 +44,7 @@ from slipd.estimators.common.filters import lowpass
 from slipd.estimators.common.inputs import ImuMemory, reset_imu
 from slipd.estimators.common.layout import build_layout
 from slipd.estimators.common.tyres import slip_angles, tanh_tyre
+from slipd.numba_cache import nb
 
 
 @enum.unique

@@ -25,12 +25,11 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.channels import Veh
 from slipd.estimators.chen2018.state import DBE_P, DBE_VX, SCRATCH_P, S
 from slipd.estimators.common.kalman import per_step, predict_covariance, scalar_update
 from slipd.estimators.common.tyres import magic_formula, static_wheel_loads, wheel_loads
+from slipd.numba_cache import nb
 
 #: m/s: the wheel-centre speed below which a slip angle's denominator is clamped (the method
 #: holds its filters far above it; this only guards the division)

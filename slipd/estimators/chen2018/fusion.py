@@ -39,8 +39,6 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.estimators.chen2018.state import (
     D12,
     D13,
@@ -55,6 +53,7 @@ from slipd.estimators.chen2018.state import (
 )
 from slipd.estimators.chen2018.wbe import inverse_sym3
 from slipd.estimators.common.kalman import beta_variance
+from slipd.numba_cache import nb
 
 #: Largest |correlation| a cross-covariance element may express (module docstring).
 CROSS_CORRELATION_LIMIT = 0.9

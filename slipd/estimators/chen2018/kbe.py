@@ -16,10 +16,9 @@ integral runs open, as in the paper. Its covariance (random-walk process noise `
 
 from __future__ import annotations
 
-import numba as nb
-
 from slipd.estimators.chen2018.state import KBE_P, SCRATCH_P, S
 from slipd.estimators.common.kalman import per_step, predict_covariance, scalar_update
+from slipd.numba_cache import nb
 
 #: F below which the straight-running pseudo-measurement is skipped (its R would be ~inf)
 MIN_STRAIGHT_WEIGHT = 1e-6

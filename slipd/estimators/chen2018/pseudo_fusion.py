@@ -37,7 +37,6 @@ from __future__ import annotations
 import enum
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import ST_DEGRADED, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, VALID, In, Veh
@@ -77,6 +76,7 @@ from slipd.estimators.common.inputs import (
 from slipd.estimators.common.kinematics import kinematic_beta_rate
 from slipd.estimators.common.outputs import held_sigma, write_held, write_outputs
 from slipd.estimators.common.vehicle import require_vehicle
+from slipd.numba_cache import nb
 
 
 @enum.unique

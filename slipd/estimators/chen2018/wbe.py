@@ -24,10 +24,9 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.channels import Veh
 from slipd.estimators.chen2018.state import WBE_G, WBE_M, S
+from slipd.numba_cache import nb
 
 
 @nb.njit(cache=True)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
+from slipd.numba_cache import nb
 
 #: Cut-off of the derivative filters (Selmanaj section 2.1: "derivative filters with a cutoff
 #: frequency of 10 Hz", designed in continuous time and discretised by forward Euler).

@@ -13,7 +13,6 @@ from __future__ import annotations
 import enum
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import (
@@ -33,6 +32,7 @@ from slipd.estimators.common.kinematics import (
     translate_to_cog,
     translate_to_cog_planar,
 )
+from slipd.numba_cache import nb
 
 
 @nb.njit(cache=True, inline="always")

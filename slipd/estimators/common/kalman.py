@@ -19,9 +19,8 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.estimators.common.filters import lowpass
+from slipd.numba_cache import nb
 
 
 @nb.njit(cache=True)

@@ -12,9 +12,8 @@ from __future__ import annotations
 import enum
 import math
 
-import numba as nb
-
 from slipd.channels import G, Veh
+from slipd.numba_cache import nb
 
 
 @nb.njit(cache=True, inline="always")

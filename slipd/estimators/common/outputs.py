@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.channels import ST_NOT_CONVERGED, Out
+from slipd.numba_cache import nb
 
 
 @nb.njit(cache=True, inline="always")

@@ -13,9 +13,8 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.channels import G, Veh
+from slipd.numba_cache import nb
 
 
 @nb.njit(cache=True)

@@ -106,7 +106,6 @@ from __future__ import annotations
 import enum
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import (
@@ -142,6 +141,7 @@ from slipd.estimators.ensemble.state import (
 from slipd.estimators.righetti_lenzo2025 import d_ekf, dk_ekf, k_kf
 from slipd.estimators.selmanaj2017 import kinematic_heuristic
 from slipd.estimators.yoon2016 import gnss_magnetometer
+from slipd.numba_cache import nb
 
 
 class FUSION_PARAMS(enum.IntEnum):

@@ -6,10 +6,9 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.channels import N_OUT, Out
 from slipd.estimators.ensemble.state import FAMILY, N_MEMBERS, F
+from slipd.numba_cache import nb
 
 
 @nb.njit(cache=True)

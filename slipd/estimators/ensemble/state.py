@@ -6,11 +6,10 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-import numba as nb
-
 from slipd.channels import N_IN, N_OUT, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, ST_UNAVAILABLE
 from slipd.estimators import registry
 from slipd.estimators.common.layout import build_layout
+from slipd.numba_cache import nb
 
 #: The member methods, in the order of their slots (and of the calls in ``run_members``).
 MEMBERS = (

@@ -15,11 +15,11 @@ variance and the vx measurement variance (R_VX, the r_vx of eq. 29, as the speed
 
 from __future__ import annotations
 
-import numba as nb
 import numpy as np
 
 from slipd.estimators.righetti_lenzo2025 import filters as rl
 from slipd.estimators.righetti_lenzo2025.filters import S
+from slipd.numba_cache import nb
 
 #: The state layout all three methods share (filters.LAYOUT).
 LAYOUT = rl.LAYOUT

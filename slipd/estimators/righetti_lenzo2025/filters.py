@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, G, Out, Veh
@@ -69,6 +68,7 @@ from slipd.estimators.common.outputs import held_sigma, write_held, write_output
 from slipd.estimators.common.params import build_params
 from slipd.estimators.common.tyres import slip_angles, tanh_tyre
 from slipd.estimators.common.vehicle import require_vehicle
+from slipd.numba_cache import nb
 
 LAYOUT = build_layout(
     "righetti_lenzo2025",

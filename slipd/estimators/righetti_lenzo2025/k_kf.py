@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.estimators.common.kalman import per_step
 from slipd.estimators.righetti_lenzo2025 import filters as rl
 from slipd.estimators.righetti_lenzo2025.filters import S
+from slipd.numba_cache import nb
 
 #: The state layout all three methods share (filters.LAYOUT).
 LAYOUT = rl.LAYOUT

@@ -109,7 +109,6 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import (
@@ -144,6 +143,7 @@ from slipd.estimators.common.layout import build_layout
 from slipd.estimators.common.outputs import write_outputs
 from slipd.estimators.selmanaj2017.params import DEFAULTS, PARAMS, TABLE_1
 from slipd.estimators.selmanaj2017.wheel_speed import Wheels, vx_from_wheels
+from slipd.numba_cache import nb
 
 #: The state vector (common.layout). IMU: the CoG translation's derivative filters, the roll
 #: of the gravity compensation and the held steer (its LAST_AX is unused: without the IMU the

@@ -5,10 +5,9 @@ from __future__ import annotations
 import enum
 import math
 
-import numba as nb
-
 from slipd.estimators.common.filters import DERIVATIVE_CUTOFF_HZ, derivative_filter
 from slipd.estimators.common.kinematics import compensate_wheel_speeds
+from slipd.numba_cache import nb
 
 
 @enum.unique

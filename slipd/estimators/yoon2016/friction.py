@@ -15,11 +15,10 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.channels import Veh
 from slipd.estimators.common.kalman import scalar_update
 from slipd.estimators.common.tyres import brush_tyre, static_wheel_loads
+from slipd.numba_cache import nb
 
 
 @nb.njit(cache=True)

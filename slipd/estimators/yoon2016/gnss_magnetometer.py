@@ -85,7 +85,6 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.channels import (
@@ -138,6 +137,7 @@ from slipd.estimators.yoon2016.state import (
     E,
     S,
 )
+from slipd.numba_cache import nb
 
 #: Channels whose loss makes the output invalid (the pipeline's required-channel mask).
 REQUIRED = (

@@ -33,9 +33,8 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.estimators.common.kalman import gated_update, scalar_update
+from slipd.numba_cache import nb
 
 #: |det| below which the horizontal calibration map is singular (no heading from it)
 MIN_CALIBRATION_DET = 1e-9

@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
 from slipd.estimators.common.kalman import predict_covariance, scalar_update, tri
 from slipd.estimators.yoon2016.state import (
     BUFFER_TICKS,
@@ -34,6 +32,7 @@ from slipd.estimators.yoon2016.state import (
     E,
     S,
 )
+from slipd.numba_cache import nb
 
 
 @nb.njit(cache=True)

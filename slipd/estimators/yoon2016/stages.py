@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from slipd.estimators.common.kinematics import vehicle_roll_gain
@@ -41,6 +40,7 @@ from slipd.estimators.yoon2016.state import (
     E,
     S,
 )
+from slipd.numba_cache import nb
 
 
 def reset_calibration(state: np.ndarray, params: np.ndarray) -> None:
