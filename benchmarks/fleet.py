@@ -293,20 +293,24 @@ def sequential_against_dask(tmp: Path, logs: list[Path], methods: str, workers: 
                                                  "--out", str(tmp / "dask")])
     summary = pq.read_table(tmp / "dask" / "summary.parquet").to_pydict()
     frames = sum(summary["frames"])
-    per_worker = {}
-    for worker, seconds in zip(summary["worker"], summary["seconds"], strict=True):
+    per_worker, cpu_per_worker = {}, {}
+    for worker, seconds, cpu in zip(summary["worker"], summary["seconds"],
+                                    summary["cpu_seconds"], strict=True):
         per_worker[worker] = per_worker.get(worker, 0.0) + seconds
+        cpu_per_worker[worker] = cpu_per_worker.get(worker, 0.0) + cpu
     rss = worker_peaks(tmp / "dask")
     for name, wall, peak, folder in (("sequential", seq_wall, seq_rss, "seq"),
                                      ("sequential, one thread", one_wall, one_rss, "seq1")):
         tasks = pq.read_table(tmp / folder / "summary.parquet").to_pydict()
         print(f"{name} (one process, {frames} frames, {tasks['threads'][0]} replay "
               f"thread(s)): {wall:.1f} s, peak RSS {peak:.0f} MB; {sum(tasks['seconds']):.1f} s "
-              f"in tasks, {wall - sum(tasks['seconds']):.1f} s outside them (start, imports, "
-              "kernels, summary)")
+              f"in tasks ({sum(tasks['cpu_seconds']):.1f} CPU s), "
+              f"{wall - sum(tasks['seconds']):.1f} s outside them (start, imports, kernels, "
+              "summary)")
     print(f"--dask local:{workers} ({summary['threads'][0]} replay thread(s) per worker): "
           f"{dask_wall:.1f} s (client peak RSS {client_rss:.0f} MB; "
-          f"per worker: " + ", ".join(f"{s:.1f} s of tasks" for s in per_worker.values())
+          f"per worker: " + ", ".join(f"{s:.1f} s of tasks ({cpu_per_worker[w]:.1f} CPU s)"
+                                      for w, s in per_worker.items())
           + (f"; worker peak RSS {', '.join(f'{r:.0f}' for r in rss)} MB" if rss else "")
           + f"); {dask_wall - max(per_worker.values(), default=0.0):.1f} s outside the "
           "busiest worker's tasks (start, imports, cluster, kernels, close)")

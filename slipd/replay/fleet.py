@@ -217,6 +217,9 @@ class LogRecord:
     rejected_frames: int = 0
     valid_share: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
+    #: CPU seconds this process used while the log ran (its replay threads and, on a Dask
+    #: worker, the worker's own threads: its event loop, heartbeats), beside the wall seconds
+    cpu_seconds: float = 0.0
     worker: str = ""
     #: the threads the replay ran its stages on (slipd.replay.ahead.replay_threads)
     threads: int = 0
@@ -245,6 +248,7 @@ def replay_log(job: LogJob) -> LogRecord:
     """Stream one log through the methods into its partition (when the job has an out_dir);
     never raises for the log's own faults: they are the record's error."""
     started = time.perf_counter()
+    cpu_started = time.process_time()
     path = Path(job.log)
     record = LogRecord(job.log, job.key, profile=job.profile, methods=",".join(job.methods),
                        options=job.options, worker=f"{socket.gethostname()}:{os.getpid()}")
@@ -252,16 +256,21 @@ def replay_log(job: LogJob) -> LogRecord:
         record.threads = replay_threads()
         stat = path.stat()
         record.size_bytes, record.mtime_ns = stat.st_size, stat.st_mtime_ns
-        _replay_into(job, record, started)
+        _replay_into(job, record, started, cpu_started)
     except SlipdError as exc:
         record.status, record.error = "failed", str(exc)
     except FileNotFoundError as exc:
         record.status, record.error = "failed", f"{path}: no such file ({exc.strerror})"
     except Exception as exc:  # noqa: BLE001 - the batch goes on; the row says what happened
         record.status, record.error = "failed", f"{type(exc).__name__}: {exc}"
-    record.seconds = round(time.perf_counter() - started, 3)
-    record.peak_rss_mb = _peak_rss_mb()
+    _timed(record, started, cpu_started)
     return record
+
+
+def _timed(record: LogRecord, started: float, cpu_started: float) -> None:
+    record.seconds = round(time.perf_counter() - started, 3)
+    record.cpu_seconds = round(time.process_time() - cpu_started, 3)
+    record.peak_rss_mb = _peak_rss_mb()
 
 
 def _peak_rss_mb() -> float:
@@ -270,7 +279,7 @@ def _peak_rss_mb() -> float:
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
 
 
-def _replay_into(job: LogJob, record: LogRecord, started: float) -> None:
+def _replay_into(job: LogJob, record: LogRecord, started: float, cpu_started: float) -> None:
     import numpy as np
 
     from slipd.channels import Out, Status
@@ -313,8 +322,7 @@ def _replay_into(job: LogJob, record: LogRecord, started: float) -> None:
                               for m, v in valid.items()}
         if writer is not None:
             record.partition = str(target)
-            record.seconds = round(time.perf_counter() - started, 3)
-            record.peak_rss_mb = _peak_rss_mb()
+            _timed(record, started, cpu_started)
             writer.add_metadata({RECORD_KEY: record.as_json()})
             writer.close()
     except BaseException:
