@@ -17,11 +17,6 @@ dispatch floor every method pays in the daemon. Target (issue): each method's me
 
 from __future__ import annotations
 
-if not __package__:  # run by path (python benchmarks/NAME.py): key numba's cache to slipd's
-    from slipd.numba_cache import use_keyed_cache  # sources, as benchmarks/__init__.py does
-
-    use_keyed_cache()
-
 import argparse
 import time
 

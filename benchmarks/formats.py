@@ -14,11 +14,6 @@ and the file size, against the CSV writer as the baseline.
 
 from __future__ import annotations
 
-if not __package__:  # run by path (python benchmarks/NAME.py): key numba's cache to slipd's
-    from slipd.numba_cache import use_keyed_cache  # sources, as benchmarks/__init__.py does
-
-    use_keyed_cache()
-
 import argparse
 import tempfile
 import time

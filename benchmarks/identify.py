@@ -33,11 +33,6 @@ Before: each car's default, identified and plant values of what d_ekf reads.
 
 from __future__ import annotations
 
-if not __package__:  # run by path (python benchmarks/NAME.py): key numba's cache to slipd's
-    from slipd.numba_cache import use_keyed_cache  # sources, as benchmarks/__init__.py does
-
-    use_keyed_cache()
-
 import argparse
 import math
 import tempfile
