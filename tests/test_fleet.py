@@ -164,9 +164,13 @@ def test_a_local_cluster_forks_its_workers_from_a_server_that_loaded_the_kernels
         preloaded = client.run(lambda: (
             "slipd.replay.dask_forkserver" in __import__("sys").modules,
             __import__("os").getppid()))
+        # no statistical profiler sampling the workers' stacks (fleet.LOCAL_WORKER_CONFIG)
+        profiling = client.run(lambda: __import__("dask").config.get(
+            "distributed.worker.profile.enabled"))
         records = fleet.run_fleet([logs / f"{n}.log" for n in names], "default", methods,
                                   tmp_path / "dataset", client, progress=False)
     assert len(preloaded) == 2
+    assert set(profiling.values()) == {False}
     assert all(loaded for loaded, _ in preloaded.values())
     assert {parent for _, parent in preloaded.values()} != {os.getpid()}
     assert [r.status for r in records] == ["ok", "ok"]

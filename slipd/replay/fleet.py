@@ -56,6 +56,12 @@ LOG_SUFFIXES = (".log", ".candump", ".asc", ".blf", ".trc", ".mf4", ".csv")
 #: a --resume decision compares these fields of the record
 SAME_RUN = ("log", "size_bytes", "mtime_ns", "profile", "profile_sha256", "methods",
             "options")
+#: dask config of a ``local`` cluster's workers: no statistical profiler. distributed samples
+#: every thread's stack each 10 ms by default (distributed.worker.profile), which cannot see
+#: into slipd's numba kernels and took 5 % more CPU per task: measured on 40 ten-minute
+#: drives with every method, the workers' tasks 34.2-34.9 s with it, 32.0-33.2 s without.
+#: A cluster of your own: DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False (README).
+LOCAL_WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -129,15 +135,18 @@ def _threads_each(workers: int) -> int:
 def _forkserver_with_kernels(methods: list[str], profile: str) -> Iterator[None]:
     """Local workers forked from a forkserver that has imported distributed and slipd and
     loaded the run's kernels (slipd.replay.dask_forkserver), instead of spawned interpreters
-    that each import and load them again. Only for the workers started inside the block (a
-    worker its nanny restarts later is spawned as usual and warmed by KernelWarmup)."""
+    that each import and load them again, with :data:`LOCAL_WORKER_CONFIG` (their nannies
+    copy the dask config when the cluster creates them). The forkserver only for the workers
+    started inside the block (a worker its nanny restarts later is spawned as usual and warmed
+    by KernelWarmup)."""
     import dask
     from distributed.utils import get_mp_context
 
     from slipd.replay import dask_forkserver
 
     os.environ[dask_forkserver.KERNELS_VARIABLE] = f"{','.join(methods)}@{profile}"
-    with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
+    with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver",
+                          **LOCAL_WORKER_CONFIG}):
         get_mp_context().set_forkserver_preload(["distributed", dask_forkserver.__name__])
         yield
 
