@@ -201,3 +201,20 @@ def test_a_local_cluster_listens_on_loopback_only():
     mine = [line.split()[3] for line in listening.splitlines() if f"pid={os.getpid()}," in line]
     assert info["address"].startswith("tcp://127.0.0.1:")
     assert mine and all(a.startswith(("127.0.0.1:", "[::1]:")) for a in mine), mine
+
+
+def test_the_largest_logs_go_first_and_the_results_keep_the_logs_order():
+    """Longest processing time first: a run's last tasks are its short logs, so no worker
+    idles long at the end while another finishes a long one. One worker with one thread runs
+    the tasks in the order they were submitted."""
+    from slipd.replay.fleet import dask_client, run_tasks
+
+    sizes = [10.0, 30.0, 20.0, 30.0, 5.0]
+    with dask_client("local:1", ["zero"], "default") as client:
+        results = run_tasks(client, lambda item: (item, __import__("time").monotonic_ns()),
+                            list(range(len(sizes))), [f"log{k}" for k in range(len(sizes))],
+                            progress=False, sizes=sizes)
+    assert [error for _, error in results] == [None] * len(sizes)
+    assert [item for (item, _), _ in results] == list(range(len(sizes)))
+    started = sorted(range(len(sizes)), key=lambda k: results[k][0][1])
+    assert started == [1, 3, 2, 0, 4]  # by size, equal sizes in the logs' order

@@ -191,13 +191,14 @@ def _score_on_cluster(client, logs: list[LogCase], methods: list[str],
                       chunk_bytes: int | None) -> list[LogScores | str]:
     """Each log's scores, or the text of its error (the other logs go on)."""
     from slipd.errors import SlipdError
-    from slipd.replay.fleet import run_tasks
+    from slipd.replay.fleet import file_sizes, run_tasks
 
     if profile_spec is None:
         raise ConfigError("a cluster evaluation needs the profile as a name or path")
     jobs = [_ScoreJob(entry.log.resolve(), entry.truth.resolve(), tuple(methods), profile_spec,
                       case, min_speed_kph, chunk_bytes) for entry in logs]
-    results = run_tasks(client, _score_job, jobs, [f"{case}-{e.name}" for e in logs])
+    results = run_tasks(client, _score_job, jobs, [f"{case}-{e.name}" for e in logs],
+                        sizes=file_sizes(job.log for job in jobs))
     return [result if error is None else
             str(error) if isinstance(error, SlipdError) else f"{type(error).__name__}: {error}"
             for result, error in results]

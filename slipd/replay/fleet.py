@@ -152,16 +152,24 @@ def _forkserver_with_kernels(methods: list[str], profile: str) -> Iterator[None]
 
 
 def run_tasks(client, function: Callable, items: list, names: list[str],
-              progress: bool = True) -> list[tuple[object, BaseException | None]]:
+              progress: bool = True, sizes: list[float] | None = None
+              ) -> list[tuple[object, BaseException | None]]:
     """``function(item)`` for every item as dask tasks (one each, ``names`` in their keys);
-    returns (result, None) or (None, exception) per item, in the items' order. Shows dask's
-    progress bar on stderr when it is a terminal."""
+    returns (result, None) or (None, exception) per item, in the items' order. With ``sizes``
+    (a log's bytes: its work) the largest are submitted first (dask runs tasks in submission
+    order), so the last tasks of the run are short ones and no worker idles long while another
+    finishes a long log (longest processing time first). Shows dask's progress bar on stderr
+    when it is a terminal."""
     if not items:
         return []
     stamp = time.time_ns()
     keys = [f"slipd-{_slug(name)}-{stamp}-{k}" for k, name in enumerate(names)]
-    futures = [client.submit(function, item, key=key, pure=False)
-               for item, key in zip(items, keys, strict=True)]
+    order = list(range(len(items)))
+    if sizes is not None:
+        order.sort(key=lambda k: -sizes[k])  # stable: equal sizes keep the items' order
+    futures: list = [None] * len(items)
+    for k in order:
+        futures[k] = client.submit(function, items[k], key=keys[k], pure=False)
     if progress and sys.stderr.isatty():
         from distributed import progress as progress_bar
 
@@ -175,6 +183,17 @@ def run_tasks(client, function: Callable, items: list, names: list[str],
         except Exception as exc:  # noqa: BLE001 - a worker's failure is the log's error
             results.append((None, exc))
     return results
+
+
+def file_sizes(paths: Iterable[str | Path]) -> list[float]:
+    """Each file's size in bytes (0 for one that cannot be read: its task reports why)."""
+    sizes = []
+    for path in paths:
+        try:
+            sizes.append(float(os.stat(path).st_size))
+        except OSError:
+            sizes.append(0.0)
+    return sizes
 
 
 def _slug(text: str) -> str:
@@ -453,7 +472,8 @@ def run_fleet(logs: list[Path], profile: str, methods: list[str], out_dir: Path 
             records[k] = replay_log(jobs[k])
     else:
         results = run_tasks(client, replay_log, [jobs[k] for k in todo],
-                            [jobs[k].key for k in todo], progress)
+                            [jobs[k].key for k in todo], progress,
+                            file_sizes(jobs[k].log for k in todo))
         for k, (result, error) in zip(todo, results, strict=True):
             records[k] = result if error is None else LogRecord(
                 jobs[k].log, jobs[k].key, profile=profile, methods=",".join(methods),
