@@ -20,10 +20,9 @@ variable: kernels load on first use (in numba's cache under a key of slipd's sou
 
 from __future__ import annotations
 
-import functools
 import math
 import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -47,21 +46,6 @@ OUTPUT_COLUMNS = ("beta", "beta_rate", "vx", "vy", "mu", "sigma_beta", "roll",
 _DEGREE_COLUMNS = {"beta_deg": "beta", "beta_rate_deg_s": "beta_rate",
                    "sigma_beta_deg": "sigma_beta", "roll_deg": "roll"}
 _SI_ALIASES = {"vx_mps": "vx", "vy_mps": "vy"}
-
-
-def _kernels(function: Callable) -> Callable:
-    """Run ``function`` with slipd's kernel modules caching under the source key
-    (:func:`slipd.numba_cache.keyed_cache`): numba binds a kernel's cache directory when its
-    module is imported, which happens here, on first use."""
-
-    @functools.wraps(function)
-    def wrapper(*args, **kwargs):
-        from slipd.numba_cache import keyed_cache
-
-        with keyed_cache():
-            return function(*args, **kwargs)
-
-    return wrapper
 
 
 def _pandas():
@@ -186,7 +170,6 @@ def _inputs_of_frame(frame: pd.DataFrame) -> Inputs:
 # ---- decode -----------------------------------------------------------------------------
 
 
-@_kernels
 def decode(log: Any, profile: str | os.PathLike | Profile = "default", *,
            buses: Mapping[str, str] | None = None, skip_bad: bool = False) -> pd.DataFrame:
     """Decode a log through the codec and latch it onto the 100 Hz ticks (``slipd decode``).
@@ -216,7 +199,6 @@ def decode(log: Any, profile: str | os.PathLike | Profile = "default", *,
 # ---- estimate ---------------------------------------------------------------------------
 
 
-@_kernels
 def estimate(source: Any, profile: str | os.PathLike | Profile = "default",
              estimator: str | Sequence[str] | None = None, *,
              overrides: Mapping[str, float] | None = None,
@@ -344,7 +326,6 @@ def _truth_frame(truth: Any) -> pd.DataFrame:
                       f"{type(truth).__name__}")
 
 
-@_kernels
 def evaluate(estimates: pd.DataFrame, truth: Any, *, min_speed_kph: float = 20.0
              ) -> pd.DataFrame:
     """Score every method of ``estimates`` against ``truth`` (slipd.eval.metrics).
@@ -456,7 +437,6 @@ class Simulation:
     log: Path | None = None
     truth_path: Path | None = None
 
-    @_kernels
     def frames(self) -> Frames:
         """Every frame of the drive through the codec, time-sorted (what the log holds)."""
         import numpy as np
@@ -487,7 +467,6 @@ class Simulation:
                               channel=frames.channels[frames.channel[k]])
 
 
-@_kernels
 def simulate(scenario: str, *, seed: int = 0, vehicle: int = 2, duration: float | None = None,
              variant: str | None = None, sensor: Mapping[str, Any] | None = None,
              profile: str | os.PathLike | Profile = "default",
@@ -559,7 +538,6 @@ class Estimator:
     most 101 times), as the daemon does after an overrun.
     """
 
-    @_kernels
     def __init__(self, name: str | None = None,
                  profile: str | os.PathLike | Profile = "default",
                  overrides: Mapping[str, float] | None = None,

@@ -13,30 +13,23 @@ which installs a cache locator for slipd's own files first in numba's list (``So
 in :func:`_install_locator`): their cache directory is the keyed one under numba's configured
 directory, else under the XDG cache, even for a script that imports a kernel module directly
 (numba's default would put it in the module's ``__pycache__``, keyed to that file alone); a
-user's own ``cache=True`` functions keep numba's locators. On top of that (importing slipd
-sets nothing, :mod:`slipd` must stay a library):
-
-* the ``slipd`` command (daemon included) and the test suite call :func:`use_keyed_cache`,
-  which sets ``NUMBA_CACHE_DIR`` for the process and the processes it starts;
-* the Python API (:mod:`slipd.api`) loads its kernels inside :func:`keyed_cache`, which points
-  numba's ``config.CACHE_DIR`` at the keyed directory only while slipd's kernel modules are
-  imported (numba binds a kernel's cache directory when the function is decorated) and then
-  restores it, so a user's own ``cache=True`` functions cache where they always did and no
-  environment variable changes.
+user's own ``cache=True`` functions keep numba's locators, and no environment variable
+changes (the Python API relies on this alone; importing slipd sets nothing, :mod:`slipd` must
+stay a library). On top of that the ``slipd`` command (daemon included) and the test suite
+call :func:`use_keyed_cache`, which sets ``NUMBA_CACHE_DIR`` for the process and the
+processes it starts and prunes the caches of old source versions.
 
 Hashing the ~1 MB of sources takes a few ms, once per process.
 """
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import os
 import shutil
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 _ROOT = Path(__file__).parent
@@ -78,21 +71,6 @@ def use_keyed_cache() -> str:
     return keyed
 
 
-@contextlib.contextmanager
-def keyed_cache() -> Iterator[str]:
-    """Kernels decorated inside the block cache in the keyed directory; numba's
-    ``config.CACHE_DIR`` is restored afterwards and the environment is not touched."""
-    from numba.core import config
-
-    before = config.CACHE_DIR
-    keyed = keyed_dir(before or None)
-    config.CACHE_DIR = keyed
-    try:
-        yield keyed
-    finally:
-        config.CACHE_DIR = before
-
-
 def _prune_old_keys(base: Path, key: str, keep_days: float = 7.0) -> None:
     """Remove caches of other source versions untouched for ``keep_days`` (best effort)."""
     try:
@@ -116,9 +94,12 @@ def _prune_old_keys(base: Path, key: str, keep_days: float = 7.0) -> None:
 # ---------------------------------------------------------------------------------------------
 
 
+_RESOLVED_ROOT = _ROOT.resolve()
+
+
 def _is_slipd_source(py_file: str) -> bool:
     try:
-        return Path(py_file).resolve().is_relative_to(_ROOT.resolve())
+        return Path(py_file).resolve().is_relative_to(_RESOLVED_ROOT)
     except (OSError, ValueError):
         return False
 
