@@ -22,6 +22,9 @@ pq = pytest.importorskip("pyarrow.parquet")
 pytest.importorskip("vehiclemodels")
 
 METHODS = "zero,kinematic_heuristic"
+#: glibc's trim threshold as the test run was started (a nanny with dask's defaults would set
+#: 65536 in this very process's environment, which the workers then inherit)
+TRIM_THRESHOLD_OF_THE_SHELL = os.environ.get("MALLOC_TRIM_THRESHOLD_")
 
 
 @pytest.fixture(scope="module")
@@ -167,10 +170,13 @@ def test_a_local_cluster_forks_its_workers_from_a_server_that_loaded_the_kernels
         # no statistical profiler sampling the workers' stacks (fleet.LOCAL_WORKER_CONFIG)
         profiling = client.run(lambda: __import__("dask").config.get(
             "distributed.worker.profile.enabled"))
+        # nor glibc's trim threshold that makes every chunk's arrays fresh mmaps
+        trim = client.run(lambda: __import__("os").environ.get("MALLOC_TRIM_THRESHOLD_"))
         records = fleet.run_fleet([logs / f"{n}.log" for n in names], "default", methods,
                                   tmp_path / "dataset", client, progress=False)
     assert len(preloaded) == 2
     assert set(profiling.values()) == {False}
+    assert set(trim.values()) == {TRIM_THRESHOLD_OF_THE_SHELL}
     assert all(loaded for loaded, _ in preloaded.values())
     assert {parent for _, parent in preloaded.values()} != {os.getpid()}
     assert [r.status for r in records] == ["ok", "ok"]

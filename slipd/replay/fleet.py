@@ -56,12 +56,29 @@ LOG_SUFFIXES = (".log", ".candump", ".asc", ".blf", ".trc", ".mf4", ".csv")
 #: a --resume decision compares these fields of the record
 SAME_RUN = ("log", "size_bytes", "mtime_ns", "profile", "profile_sha256", "methods",
             "options")
-#: dask config of a ``local`` cluster's workers: no statistical profiler. distributed samples
-#: every thread's stack each 10 ms by default (distributed.worker.profile), which cannot see
-#: into slipd's numba kernels and took 5 % more CPU per task: measured on 40 ten-minute
-#: drives with every method, the workers' tasks 34.2-34.9 s with it, 32.0-33.2 s without.
-#: A cluster of your own: DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False (README).
-LOCAL_WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+#: dask config of a ``local`` cluster (its scheduler, nannies and workers): no statistical
+#: profiler. distributed samples every thread's stack each 10 ms by default
+#: (distributed.worker.profile), which cannot see into slipd's numba kernels and took 5 % more
+#: CPU per task: measured on 40 ten-minute drives with every method, the workers' tasks
+#: 34.2-34.9 s with it, 32.0-33.2 s without. The event loops' health tick (20 ms by default),
+#: system monitor (0.5 s) and the nannies' memory monitor (0.1 s) at 1 s, 5 s and 1 s: five
+#: processes on two cores wake up less often beside the workers' tasks (the same drives: the
+#: workers' tasks 30.0 s of wall clock for 29.5 CPU s, against 30.0-31.9 s for 29.0-30.9).
+#: A cluster of your own: the README's dask config file.
+LOCAL_WORKER_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
+#: environment variables a ``local`` cluster's nannies do not set for the workers. dask sets
+#: MALLOC_TRIM_THRESHOLD_=65536 (distributed.nanny.pre-spawn-environ) so that long-lived
+#: workers give freed memory back to the OS; with it glibc fixes its mmap threshold at 128 kB
+#: instead of raising it to the size of the blocks a process frees, so every chunk's arrays are
+#: fresh mmaps, zero-filled page by page: measured on the endurance drive with every method, one
+#: replay thread, 9.54-9.56 s (1.12 s system) with it against 9.12-9.18 s (0.55-0.64 s system)
+#: without. A replay's memory is bounded by its chunk and a local cluster lives for one run.
+LOCAL_WORKER_UNSET_ENVIRON = ("MALLOC_TRIM_THRESHOLD_",)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -136,7 +153,8 @@ def _forkserver_with_kernels(methods: list[str], profile: str) -> Iterator[None]
     """Local workers forked from a forkserver that has imported distributed and slipd and
     loaded the run's kernels (slipd.replay.dask_forkserver), instead of spawned interpreters
     that each import and load them again, with :data:`LOCAL_WORKER_CONFIG` (their nannies
-    copy the dask config when the cluster creates them). The forkserver only for the workers
+    copy the dask config when the cluster creates them) and without the environment variables
+    of :data:`LOCAL_WORKER_UNSET_ENVIRON`. The forkserver only for the workers
     started inside the block (a worker its nanny restarts later is spawned as usual and warmed
     by KernelWarmup)."""
     import dask
@@ -145,7 +163,11 @@ def _forkserver_with_kernels(methods: list[str], profile: str) -> Iterator[None]
     from slipd.replay import dask_forkserver
 
     os.environ[dask_forkserver.KERNELS_VARIABLE] = f"{','.join(methods)}@{profile}"
+    environ = {name: value for name, value in
+               dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
+               if name not in LOCAL_WORKER_UNSET_ENVIRON}
     with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver",
+                          "distributed.nanny.pre-spawn-environ": environ,
                           **LOCAL_WORKER_CONFIG}):
         get_mp_context().set_forkserver_preload(["distributed", dask_forkserver.__name__])
         yield
