@@ -1,4 +1,5 @@
-"""Golden outputs: every registered method on the codec drives (conftest.CODEC_DRIVES), hashed.
+"""Golden outputs: every registered method on stored bus logs of the codec drives
+(conftest.CODEC_DRIVES), hashed.
 
 This pins the estimators' behaviour bit for bit, so that moving code (a refactoring) can be
 shown to change nothing. A change meant to alter outputs regenerates the values once::
@@ -14,12 +15,17 @@ changed, dump the outputs before and compare after::
 What is hashed: the float64 bits of each method's supervised outputs (``Pipeline.run``, as
 the batch engine runs it: every Out column incl. status), with every NaN mapped to one NaN
 and -0.0 to 0.0 (a NaN's payload and a zero's sign change no frame on the bus). The latched
-inputs of each drive are hashed too, so a failure says whether the simulator or codec moved
-(``inputs``) or an estimator did. The values hold for this project's toolchain (numba with
-NUMBA_CPU_NAME=generic, the pinned simulator); another CPU or libm may round a
-transcendental function differently, and the simulator's drives then move by ~1e-4 deg
-(regenerated on 2026-12-02 for the 2-vCPU Xeon with AVX-512 machines: every fingerprint
-within 1e-4 deg of the earlier machines' but snow_drift's, within 0.05 deg of its mean).
+inputs of each drive are hashed too, so a failure says whether the codec moved (``inputs``)
+or an estimator did.
+
+The drives are bus logs in tests/data/golden_drives (the codec drives simulated once, seed 0,
+written by ``slipd.sim.writer.write_log``, gzipped), not simulated here: the simulator's
+transcendental functions round differently on different CPUs (numpy's SIMD paths, libm), so a
+drive simulated on another machine kind moved every fingerprint by ~1e-4 deg and the golden
+values held on one kind of machine only (regenerated for each new kind twice). The codec and
+the kernels (numba with NUMBA_CPU_NAME=generic) give the same bits from the same log. Remake
+the logs only when the bus layout changes (``python tests/test_golden.py --write-drives``),
+then regenerate the values.
 """
 
 from __future__ import annotations
@@ -35,6 +41,40 @@ import pytest
 from slipd.channels import ST_VALID, Out
 
 GOLDEN = Path(__file__).resolve().parent / "data" / "golden_outputs.json"
+#: the stored drives: DRIVES / f"{scenario}.log.gz" for each of conftest.CODEC_DRIVES
+DRIVES = GOLDEN.parent / "golden_drives"
+
+
+def write_drives() -> None:
+    """Simulate conftest.CODEC_DRIVES (seed 0, the default profile) into DRIVES."""
+    import gzip
+
+    from conftest import CODEC_DRIVES
+
+    from slipd.profile import load_profile
+    from slipd.sim import simulate
+    from slipd.sim.writer import write_log
+
+    DRIVES.mkdir(parents=True, exist_ok=True)
+    profile = load_profile("default")
+    for scenario, duration in CODEC_DRIVES:
+        log = DRIVES / f"{scenario}.log"
+        write_log(log, simulate(scenario, vehicle=2, seed=0, duration=duration), profile)
+        with gzip.GzipFile(DRIVES / f"{scenario}.log.gz", "wb", 9, mtime=0) as packed:
+            packed.write(log.read_bytes())
+        log.unlink()
+
+
+@pytest.fixture(scope="module")
+def golden_inputs(profile) -> dict:
+    """{scenario: latched inputs} of the stored drives, through the codec."""
+    from conftest import CODEC_DRIVES
+
+    from slipd.replay.engine import latch_log
+    from slipd.replay.readers import read_frames
+
+    return {scenario: latch_log(read_frames(DRIVES / f"{scenario}.log.gz"), profile)
+            for scenario, _ in CODEC_DRIVES}
 
 
 def canonical_hash(array: np.ndarray) -> str:
@@ -56,21 +96,20 @@ def fingerprint(out: np.ndarray) -> dict:
     }
 
 
-def method_outputs(drive, profile) -> dict[str, np.ndarray]:
+def method_outputs(inputs, profile) -> dict[str, np.ndarray]:
     from slipd.estimators.registry import available
     from slipd.pipeline import Pipeline
 
-    return {name: Pipeline(name, profile).run(drive.inputs.U, drive.inputs.steps)
-            for name in available()}
+    return {name: Pipeline(name, profile).run(inputs.U, inputs.steps) for name in available()}
 
 
-def current_values(codec_drives, profile) -> tuple[dict, dict]:
+def current_values(golden_inputs, profile) -> tuple[dict, dict]:
     values, outputs = {}, {}
-    for scenario, drive in codec_drives.items():
-        outs = method_outputs(drive, profile)
+    for scenario, inputs in golden_inputs.items():
+        outs = method_outputs(inputs, profile)
         outputs[scenario] = outs
         values[scenario] = {
-            "inputs": canonical_hash(drive.inputs.U),
+            "inputs": canonical_hash(inputs.U),
             "methods": {name: {"hash": canonical_hash(out), **fingerprint(out)}
                         for name, out in outs.items()},
         }
@@ -107,8 +146,8 @@ def _compare(directory: Path, outputs: dict) -> list[str]:
     return lines
 
 
-def test_outputs_match_the_golden_values(codec_drives, profile):
-    values, outputs = current_values(codec_drives, profile)
+def test_outputs_match_the_golden_values(golden_inputs, profile):
+    values, outputs = current_values(golden_inputs, profile)
     if os.environ.get("SLIPD_GOLDEN_DUMP"):
         _dump(Path(os.environ["SLIPD_GOLDEN_DUMP"]), outputs)
     if os.environ.get("SLIPD_GOLDEN_COMPARE"):
@@ -124,8 +163,9 @@ def test_outputs_match_the_golden_values(codec_drives, profile):
     for scenario, now in values.items():
         recorded = golden[scenario]
         if now["inputs"] != recorded["inputs"]:
-            problems.append(f"{scenario}: the latched inputs changed (simulator or codec), so "
-                            "every method's outputs may; this test cannot judge the estimators")
+            problems.append(f"{scenario}: the latched inputs of the stored drive changed (the "
+                            "codec), so every method's outputs may; this test cannot judge the "
+                            "estimators")
             continue
         for name in sorted(set(now["methods"]) | set(recorded["methods"])):
             if name not in recorded["methods"]:
@@ -137,3 +177,12 @@ def test_outputs_match_the_golden_values(codec_drives, profile):
                 problems.append(f"{scenario} {name}: outputs changed, now "
                                 f"{now['methods'][name]}, golden {recorded['methods'][name]}")
     assert not problems, "\n".join(problems)
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] != ["--write-drives"]:
+        sys.exit("usage: python tests/test_golden.py --write-drives")
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    write_drives()
