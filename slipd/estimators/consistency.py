@@ -8,9 +8,9 @@ ways (DESIGN.md, "What VALID means"):
 * the **kinematic witness**, x_K = [vx_K, vy_K]: the kinematic model (Selmanaj et al. 2017
   eq. 1, vx' = ax + r vy, vy' = ay - r vx, the IMU moved to the CoG in the plane) integrated
   from the method's own estimate and pulled back to it with the time constant T
-  (``KIN_TIME_CONSTANT``)::
+  (``KIN_TIME_CONSTANT``), each channel with the method's other velocity in its cross term::
 
-      vx_K' = ax + r vy_K - (vx_K - vx) / T,    vy_K' = ay - r vx_K - (vy_K - vy) / T
+      vx_K' = ax + r vy - (vx_K - vx) / T,    vy_K' = ay - r vx - (vy_K - vy) / T
 
   In steady state vy_K - vy = T (vy' - (ay - r vx)): the method's lateral dynamics against
   the accelerometer's over the last ~T seconds. It parts from the method when the method's vy
@@ -62,8 +62,9 @@ and keeps VALID off until the estimate has been consistent (below ``N_SIGMA_WARN
 ``NIS_RATIO_WARN``) for ``RECOVERY_TIME``; one above ``N_SIGMA_WARN`` (or the innovation test
 above ``NIS_RATIO_WARN``) sets DEGRADED only.
 After a failure the kinematic witness stops following the method it failed (for at most
-``FREE_RUN_TIME``): a method whose wheel speeds all read 0 at speed (locked wheels) would
-otherwise pull the witness down to its own wrong speed within T. The speed is checked even
+``FREE_RUN_TIME``, then it starts again from the method): a method whose wheel speeds all read
+0 at speed (locked wheels) would otherwise pull the witness down to its own wrong speed within
+T. The speed is checked even
 when the method says the car has stopped (below ``MIN_SPEED``), the beta checks only above.
 
 Calibrated sigma (the frame's SIGMA_BETA): the method's own sigma together with what the
@@ -291,13 +292,17 @@ def monitor(state, u, out, witness, params, vehicle, dt):
         state[S.KIN_VY] = vy
         state[S.ANCHORED] = 1.0
     # the kinematic witness, one forward-Euler step pulled towards the method (not while it
-    # runs free after a failure)
+    # runs free after a failure); each channel's cross term takes the method's other velocity,
+    # so that vx_K checks vx against ax and vy_K checks vy against ay. With the witness's own
+    # (vx' = ax + r vy_K, vy' = ay - r vx_K) an error of one channel rotated into the other at
+    # the yaw rate while it ran free: a lateral failure grew into a speed error of several m/s
+    # within seconds, a speed failure the method did not have
     t_kin = params[PARAMS.KIN_TIME_CONSTANT]
     pull = 0.0 if state[S.FREE_RUN] > 0.0 else 1.0 / t_kin
     kvx = state[S.KIN_VX]
     kvy = state[S.KIN_VY]
-    state[S.KIN_VX] = kvx + (ax + yaw_rate * kvy - (kvx - vx) * pull) * dt
-    state[S.KIN_VY] = kvy + (ay - yaw_rate * kvx - (kvy - vy) * pull) * dt
+    state[S.KIN_VX] = kvx + (ax + yaw_rate * vy - (kvx - vx) * pull) * dt
+    state[S.KIN_VY] = kvy + (ay - yaw_rate * vx - (kvy - vy) * pull) * dt
     flags = _CHECKED
     # speed: beyond the wheel-slip tolerance and what the ax budget integrates in T
     speed_error = state[S.KIN_VX] - vx
@@ -352,6 +357,12 @@ def monitor(state, u, out, witness, params, vehicle, dt):
         state[S.FREE_RUN] = 0.0
     elif state[S.FREE_RUN] > 0.0:
         state[S.FREE_RUN] = max(0.0, state[S.FREE_RUN] - dt)
+        if state[S.FREE_RUN] <= 0.0:
+            # the free run is over (FREE_RUN_TIME at most): the witness starts again from the
+            # method. Pulled back from where it ran to instead, it never caught up with a
+            # method whose failure had passed, which then stayed failed for the rest of the
+            # drive (the failure re-armed the free run every FREE_RUN_TIME)
+            state[S.ANCHORED] = 0.0
     if state[S.RECOVERY] > 0.0:
         flags |= _FAIL
     # calibrated sigma (an unknown one, zero's, stays unknown); VALID only while it is
