@@ -12,7 +12,7 @@ ways (DESIGN.md, "What VALID means"):
 
       vx_K' = ax + r vy - (vx_K - vx) / T,    vy_K' = ay - r vx - (vy_K - vy) / T
 
-  In steady state vy_K - vy = T (vy' - (ay - r vx)): the method's lateral dynamics against
+  In steady state vy_K - vy = T ((ay - r vx) - vy'): the method's lateral dynamics against
   the accelerometer's over the last ~T seconds. It parts from the method when the method's vy
   moves in a way the IMU does not show (a tyre model saturating in the wrong place, a reset,
   a jump) or when vx departs from the integral of ax (every wheel locked or spinning: the
@@ -64,8 +64,8 @@ above ``NIS_RATIO_WARN``) sets DEGRADED only.
 After a failure the kinematic witness stops following the method it failed (for at most
 ``FREE_RUN_TIME``, then it starts again from the method): a method whose wheel speeds all read
 0 at speed (locked wheels) would otherwise pull the witness down to its own wrong speed within
-T. The speed is checked even
-when the method says the car has stopped (below ``MIN_SPEED``), the beta checks only above.
+T. The speed is checked even when the method says the car has stopped (below ``MIN_SPEED``),
+the beta checks only above.
 
 Calibrated sigma (the frame's SIGMA_BETA): the method's own sigma together with what the
 witnesses say about its error, sigma^2 = sigma_m^2 + ``SIGMA_FLOOR``^2 + sigma_D^2 +
