@@ -208,6 +208,72 @@ def test_excluded_status_gets_zero_weight_that_tick(bad_status, vehicle):
     assert weights(state)[2] > 0.0
 
 
+def test_a_member_its_monitor_fails_is_left_out_while_another_is_vouched_for(vehicle):
+    """member_monitor: a member whose consistency monitor failed it (CONSISTENT 0) gets no
+    weight while a usable member passes; when every member fails, none is singled out."""
+    params = registry.make_params(ens, {"member_monitor": 1.0})
+    state = ens.init(params, vehicle)
+    u = all_valid_u()
+    out = np.zeros(N_OUT)
+    rng = np.random.default_rng(3)
+
+    def run(ticks, consistent):
+        for _ in range(ticks):
+            for m in range(N_MEMBERS):
+                set_member(state, m, 0.02 + rng.normal(0.0, 0.002))
+            state[F.CONSISTENT : F.CONSISTENT + N_MEMBERS] = consistent
+            ens.fuse_tick(state, u, params, DT, out)
+
+    run(300, 1.0)
+    assert np.all(weights(state) > 0.05)
+    failing = np.ones(N_MEMBERS)
+    failing[4] = 0.0
+    run(1, failing)
+    assert weights(state)[4] == 0.0 and weights(state).sum() == pytest.approx(1.0)
+    run(1, 0.0)  # nobody vouched for: the fusion of them all
+    assert weights(state)[4] == 0.0  # (back after entry_time, as after any exclusion)
+    run(int(params[FUSION_PARAMS.ENTRY_TIME] / DT) + 1, 0.0)
+    assert np.all(weights(state) > 0.05)
+    # off (the default): the verdicts change nothing
+    off = registry.make_params(ens)
+    assert off[FUSION_PARAMS.MEMBER_MONITOR] == 0.0 and off[FUSION_PARAMS.MONITOR_SIGMA] == 0.0
+    state = ens.init(off, vehicle)
+    for _ in range(300):
+        for m in range(N_MEMBERS):
+            set_member(state, m, 0.02 + rng.normal(0.0, 0.002))
+        state[F.CONSISTENT : F.CONSISTENT + N_MEMBERS] = failing
+        ens.fuse_tick(state, u, off, DT, out)
+    assert weights(state)[4] > 0.05
+
+
+def test_member_monitors_run_the_pipelines_monitor_on_each_member(simulated_drive, vehicle):
+    """monitor_members: each member's verdict and calibrated sigma are what the pipeline's
+    consistency monitor gives for that member's raw outputs with the d_ekf member as the
+    dynamic witness (none for d_ekf itself)."""
+    from slipd.estimators import consistency
+
+    _, U = simulated_drive
+    params = registry.make_params(ens, {"member_monitor": 1.0, "monitor_sigma": 1.0})
+    method = registry.load("ensemble", {"member_monitor": 1.0, "monitor_sigma": 1.0})
+    state = method.init(vehicle)
+    out = np.zeros(N_OUT)
+    outs = {name: np.zeros((len(U), N_OUT)) for name in MEMBERS}
+    calibrated = np.zeros((len(U), N_MEMBERS))
+    for k in range(len(U)):
+        ens.step(state, U[k], params, vehicle, DT, out)
+        for m, name in enumerate(MEMBERS):
+            outs[name][k] = state[F.MEMBER_OUT + m * N_OUT : F.MEMBER_OUT + (m + 1) * N_OUT]
+        calibrated[k] = state[F.CALIBRATED_SIGMA : F.CALIBRATED_SIGMA + N_MEMBERS]
+    witness = outs["d_ekf"]
+    for m, name in enumerate(MEMBERS):
+        alone = outs[name].copy()
+        mon = consistency.new_state()
+        none = np.full_like(witness, np.nan)
+        consistency.monitor_ticks(mon, U, alone, none if name == "d_ekf" else witness,
+                                  consistency.default_params(), vehicle, np.full(len(U), DT))
+        np.testing.assert_array_equal(calibrated[:, m], alone[:, Out.SIGMA_BETA], err_msg=name)
+
+
 def test_non_finite_output_and_missing_required_input_get_zero_weight(vehicle):
     params = registry.make_params(ens)
     state = ens.init(params, vehicle)
@@ -444,7 +510,7 @@ def test_error_covariance_agrees_with_its_plain_twin(seed, vehicle):
             state[F.MOMENT + m * N_MEMBERS + j] = moments[m, j]
             state[F.MASS + m * N_MEMBERS + j] = 1.0
     floor = params[FUSION_PARAMS.SIGMA_FLOOR] ** 2
-    n, variance = ens.error_covariance(state, floor)
+    n, variance = ens.error_covariance(state, floor, False)
     w, var_ii, common, fused_variance = plain_error_covariance(fused, moments, own, ens.FAMILY,
                                                                floor)
     assert n == fused.sum()

@@ -40,8 +40,13 @@ def _moment(state, i, j):
 
 
 @nb.njit(cache=True)
-def own_variance(state, m):
+def own_variance(state, m, calibrated):
+    """Member m's own error variance: its sigma_beta squared, or with ``calibrated`` its
+    consistency monitor's calibrated sigma (``monitor_members``: its own sigma together with
+    what the witnesses say of its error) where the monitor has run."""
     sigma = state[F.MEMBER_OUT + m * N_OUT + Out.SIGMA_BETA]
+    if calibrated and math.isfinite(state[F.CALIBRATED_SIGMA + m]):
+        sigma = state[F.CALIBRATED_SIGMA + m]
     return sigma * sigma if math.isfinite(sigma) and sigma > 0.0 else 0.0
 
 
@@ -175,17 +180,17 @@ def _fit_moments(state, n, floor):
 
 
 @nb.njit(cache=True, inline="always")
-def _member_variances(state, n, solved, floor):
+def _member_variances(state, n, solved, floor, calibrated):
     """P_ii = max(U_i + C_f, own sigma^2) + floor into ``state[F.VARIANCE:]`` (with n = 2 the
     moment shared in proportion to the own variances, with n = 1 the own variance)."""
     for p in range(n):
         i = int(state[F.INDEX + p])
-        own = own_variance(state, i)
+        own = own_variance(state, i, calibrated)
         if solved:
             hat = max(state[F.RHS + p], 0.0) + state[F.COMMON + FAMILY[i]]
         elif n == 2:
             other = int(state[F.INDEX + 1 - p])
-            own_other = own_variance(state, other)
+            own_other = own_variance(state, other, calibrated)
             share = own / (own + own_other) if own + own_other > 0.0 else 0.5
             hat = share * _moment(state, i, other)
         else:
@@ -226,7 +231,7 @@ def _minimum_variance_weights(state, n):
 
 
 @nb.njit(cache=True)
-def error_covariance(state, floor):
+def error_covariance(state, floor, calibrated):
     """P of the fused members (module docstring) and the weights of eq. 38 into
     ``state[F.WEIGHT:]``; P_ii into ``state[F.VARIANCE:]`` (NaN for members not fused), C_f
     into ``state[F.COMMON:]``. Returns (number fused, fused variance w' P w)."""
@@ -234,7 +239,7 @@ def error_covariance(state, floor):
     if n == 0:
         return 0, math.nan
     solved = _fit_moments(state, n, floor)
-    _member_variances(state, n, solved, floor)
+    _member_variances(state, n, solved, floor, calibrated)
     _minimum_variance_weights(state, n)
     # fused variance w' P w
     variance = 0.0

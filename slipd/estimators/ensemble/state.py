@@ -7,7 +7,7 @@ import importlib
 from types import ModuleType
 
 from slipd.channels import N_IN, N_OUT, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, ST_UNAVAILABLE
-from slipd.estimators import registry
+from slipd.estimators import consistency, registry
 from slipd.estimators.common.layout import build_layout
 from slipd.numba_cache import nb
 
@@ -34,6 +34,11 @@ _FAMILIES = tuple(dict.fromkeys(spec.family for spec in _SPECS))
 FAMILY = tuple(_FAMILIES.index(spec.family) for spec in _SPECS)
 #: A member's status bits that take it out of the fusion this tick.
 EXCLUDING = ST_UNAVAILABLE | ST_INPUT_TIMEOUT | ST_NOT_CONVERGED | ST_RESET
+#: The member whose raw output is the dynamic witness of the others' consistency monitors
+#: (slipd.pipeline.WITNESS); it has none of its own inside the ensemble.
+WITNESS_MEMBER = MEMBERS.index("d_ekf")
+#: Slots of one member's consistency monitor.
+MONITOR_SIZE = consistency.LAYOUT.size
 
 
 
@@ -62,6 +67,11 @@ LAYOUT = build_layout(
     ("RHS", 2 * N_MEMBERS),  # scratch, right-hand side, then the solution
     ("SCALE", 2 * N_MEMBERS),  # scratch, the diagonal scaling
     ("COMMON", N_MEMBERS),  # C_f of family f of the last tick, rad^2
+    ("MONITOR", N_MEMBERS * MONITOR_SIZE),  # each member's consistency monitor
+    ("MONITOR_OUT", N_OUT),  # scratch, a member's outputs as its monitor sees them
+    ("NO_WITNESS", N_OUT),  # NaN: the witness member's monitor has no dynamic witness
+    ("CONSISTENT", N_MEMBERS),  # 1.0 unless the member's monitor failed it this tick
+    ("CALIBRATED_SIGMA", N_MEMBERS),  # rad, its monitor's calibrated sigma (NaN: not run)
     *((name.upper(), member_module(name).LAYOUT) for name in MEMBERS),
 )
 F = LAYOUT.S
@@ -82,6 +92,12 @@ def _member_state(state, m):
 @nb.njit(cache=True)
 def _member_params(state, params, m):
     return params[int(state[F.PARAMS_BOUNDS + m]) : int(state[F.PARAMS_BOUNDS + m + 1])]
+
+
+@nb.njit(cache=True)
+def _member_monitor(state, m):
+    start = F.MONITOR + m * MONITOR_SIZE
+    return state[start : start + MONITOR_SIZE]
 
 
 @nb.njit(cache=True)
