@@ -250,7 +250,6 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     for m in range(N_MEMBERS):
         state[F.MONITOR + m * MONITOR_SIZE : F.MONITOR + (m + 1) * MONITOR_SIZE] = (
             consistency.new_state())
-    state[F.NO_WITNESS : F.NO_WITNESS + N_OUT] = np.nan
     state[F.CONSISTENT : F.CONSISTENT + N_MEMBERS] = 1.0
     state[F.CALIBRATED_SIGMA : F.CALIBRATED_SIGMA + N_MEMBERS] = np.nan
     for m, name in enumerate(MEMBERS):
@@ -302,6 +301,8 @@ def member_usable(state, u, m):
 
 #: the monitor's FAIL bit (consistency.Flag.FAIL)
 _MONITOR_FAIL = int(consistency.Flag.FAIL)
+#: the witness member's monitor has no dynamic witness (NaN outputs: not running)
+_NO_WITNESS = np.full(N_OUT, np.nan)
 
 
 @nb.njit(cache=True)
@@ -318,7 +319,7 @@ def monitor_members(state, u, params, vehicle, dt):
         for c in range(N_OUT):
             scratch[c] = row[c]
         if m == WITNESS_MEMBER:
-            witness = state[F.NO_WITNESS : F.NO_WITNESS + N_OUT]
+            witness = _NO_WITNESS
         else:
             witness = _member_out(state, WITNESS_MEMBER)
         monitor_state = _member_monitor(state, m)
@@ -335,14 +336,12 @@ def mark_usable(state, u, entry_ticks, member_monitor):
     member its consistency monitor fails (CONSISTENT 0) is not usable while another usable one
     passes (when every one fails, none is vouched for and all stay)."""
     vouched = False
-    if member_monitor:
-        for m in range(N_MEMBERS):
-            if state[F.CONSISTENT + m] > 0.5 and member_usable(state, u, m):
-                vouched = True
-                break
     for m in range(N_MEMBERS):
-        if member_usable(state, u, m) and not (vouched and state[F.CONSISTENT + m] < 0.5):
-            state[F.USABLE + m] = 1.0
+        usable = member_usable(state, u, m)
+        state[F.USABLE + m] = 1.0 if usable else 0.0
+        vouched = vouched or (member_monitor and usable and state[F.CONSISTENT + m] > 0.5)
+    for m in range(N_MEMBERS):
+        if state[F.USABLE + m] > 0.5 and not (vouched and state[F.CONSISTENT + m] < 0.5):
             state[F.USABLE_TICKS + m] += 1.0
         else:
             state[F.USABLE + m] = 0.0

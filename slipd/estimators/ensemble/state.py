@@ -69,7 +69,6 @@ LAYOUT = build_layout(
     ("COMMON", N_MEMBERS),  # C_f of family f of the last tick, rad^2
     ("MONITOR", N_MEMBERS * MONITOR_SIZE),  # each member's consistency monitor
     ("MONITOR_OUT", N_OUT),  # scratch, a member's outputs as its monitor sees them
-    ("NO_WITNESS", N_OUT),  # NaN: the witness member's monitor has no dynamic witness
     ("CONSISTENT", N_MEMBERS),  # 1.0 unless the member's monitor failed it this tick
     ("CALIBRATED_SIGMA", N_MEMBERS),  # rad, its monitor's calibrated sigma (NaN: not run)
     *((name.upper(), member_module(name).LAYOUT) for name in MEMBERS),
