@@ -15,6 +15,7 @@ LAYOUT = build_layout(
     # WBE: xi = [vx, vy, r], information matrix M (packed), g = sum rho^j H'Y, and the
     # (m/s)^2 weighted mean squared wheel-speed residual
     "WBE_VX", "WBE_VY", "WBE_R", ("WBE_M", 6), ("WBE_G", 3), "WBE_RES_VAR",
+    "WBE_REAR_SPEED",  # m/s, the rear wheels' mean speed of the last tick (NaN: unknown)
     # difference moments D_ij (gg, gb, bb) of x_i - x_j
     ("D12", 3), ("D13", 3), ("D23", 3),
     # fusion weights W_i (2x2 row-major: gg, gb, bg, bb); rows/cols: 0 yaw rate, 1 beta
