@@ -227,22 +227,33 @@ def test_kbe_predict_and_update_match_numpy_reference():
     np.testing.assert_allclose(got, (P + P.T) / 2, rtol=1e-10, atol=1e-16)
 
 
+def wbe_rows(vehicle: np.ndarray, steer: float) -> np.ndarray:
+    """H of eq. 14 in ISO 8855 (FL, FR, RL, RR; the WBE module's docstring)."""
+    lf, bf, br = vehicle[Veh.LF], 0.5 * vehicle[Veh.TRACK_F], 0.5 * vehicle[Veh.TRACK_R]
+    c, s = math.cos(steer), math.sin(steer)
+    return np.array([[c, s, -bf * c + lf * s], [c, s, bf * c + lf * s], [1, 0, -br], [1, 0, br]])
+
+
+def started_wbe(rho: float, ridge: float) -> np.ndarray:
+    """A pseudo_fusion state whose WBE starts from M_0 = k1 I, g_0 = 0."""
+    params = registry.make_params(pf, {"ridge": ridge, "forgetting": rho})
+    state = pf.new_state()
+    pf.reset_state(state, 20.0, 0.0, params, pf.RESET_ALL)
+    return state
+
+
 def test_wbe_recursion_is_the_batch_ridge_estimate_of_eq_24(vehicle):
     """M_k = rho M + H'H + (1 - rho) k1 I from M_0 = k1 I gives exactly
     xi = [sum rho^(k-j) H_j'H_j + k1 I]^-1 sum rho^(k-j) H_j'Y_j (eq. 24, weighted)."""
     rng = np.random.default_rng(3)
     rho, ridge = 0.98, 0.5
-    lf, bf, br = vehicle[Veh.LF], 0.5 * vehicle[Veh.TRACK_F], 0.5 * vehicle[Veh.TRACK_R]
-    params = registry.make_params(pf, {"ridge": ridge, "forgetting": rho})
-    state = pf.new_state()
-    pf.reset_state(state, 20.0, 0.0, params, pf.RESET_ALL)
+    state = started_wbe(rho, ridge)
     M = ridge * np.eye(3)
     g = np.zeros(3)
     for k in range(300):
         steer = 0.05 * math.sin(0.05 * k)
         xi = np.array([20.0 + 0.01 * k, 0.4 * math.sin(0.03 * k), 0.2 * math.sin(0.03 * k)])
-        c, s = math.cos(steer), math.sin(steer)
-        H = np.array([[c, s, -bf * c + lf * s], [c, s, bf * c + lf * s], [1, 0, -br], [1, 0, br]])
+        H = wbe_rows(vehicle, steer)
         Y = H @ xi + rng.normal(0.0, 0.03, 4)
         ok = (True, k % 7 != 0, True, True)  # the FR wheel drops out now and then
         wbe.wbe_update(state, tuple(Y), ok, steer, vehicle, rho, ridge)
@@ -257,23 +268,19 @@ def test_wbe_recursion_is_the_batch_ridge_estimate_of_eq_24(vehicle):
 
 
 def test_wbe_shift_advances_every_past_row_by_the_known_change(vehicle):
-    """wbe_shift (slipd's kinematic shift): after rows j = 0..k with shifts d_j applied before
-    each, M^-1 g is the eq. 24 ridge estimate over rows whose xi is advanced by the shifts
-    since them: Y_j + H_j sum_{i > j} d_i."""
+    """wbe_shift (slipd's speed shift moves the rows by the rear axle's speed change; any d
+    here): after rows j = 0..k with shifts d_j applied before each, M^-1 g is the eq. 24 ridge
+    estimate over rows whose xi is advanced by the shifts since them: Y_j + H_j sum_{i>j} d_i."""
     rng = np.random.default_rng(5)
     rho, ridge = 0.98, 0.5
-    lf, bf, br = vehicle[Veh.LF], 0.5 * vehicle[Veh.TRACK_F], 0.5 * vehicle[Veh.TRACK_R]
-    params = registry.make_params(pf, {"ridge": ridge, "forgetting": rho})
-    state = pf.new_state()
-    pf.reset_state(state, 20.0, 0.0, params, pf.RESET_ALL)
+    state = started_wbe(rho, ridge)
     rows, shifts = [], []
     for k in range(200):
         d = rng.normal(0.0, [0.05, 0.02, 0.01]) if k else np.zeros(3)
         wbe.wbe_shift(state, d[0], d[1], d[2], ridge)
         shifts.append(d)
         steer = 0.08 * math.sin(0.07 * k)
-        c, s = math.cos(steer), math.sin(steer)
-        H = np.array([[c, s, -bf * c + lf * s], [c, s, bf * c + lf * s], [1, 0, -br], [1, 0, br]])
+        H = wbe_rows(vehicle, steer)
         Y = rng.normal(20.0, 0.5, 4)
         wbe.wbe_update(state, tuple(Y), (True,) * 4, steer, vehicle, rho, ridge)
         rows.append((H, Y))
