@@ -337,7 +337,8 @@ def test_dk_ekf_stays_observable_at_zero_yaw_rate(vehicle):
     n = 3000
     U, _ = single_track_ticks(veh, np.zeros(n), ay_offset=0.3)
     dk_out, dk_state = run(dk_ekf, U, veh)
-    kkf_out, kkf_state = run(k_kf, U, veh, {"zero_vy_yaw_rate": 0.0})
+    kkf_out, kkf_state = run(k_kf, U, veh, {"zero_vy_yaw_rate": 0.0,
+                                            "vy_leak_time_constant": 0.0})  # the paper's
     assert np.abs(U[:, In.YAW_RATE]).max() < 0.01  # truly straight
     # DK-EKF: bounded vy (the tyre model balances the offset with ~0.03 m/s) and variance
     assert np.abs(dk_out[500:, Out.VY]).max() < 0.1
@@ -351,6 +352,24 @@ def test_dk_ekf_stays_observable_at_zero_yaw_rate(vehicle):
     F0 = np.zeros((2, 2))
     assert np.linalg.matrix_rank(np.vstack([F0, [[1.0, 0.0]]])) == 1
     assert np.linalg.matrix_rank(np.vstack([F0, np.eye(2)])) == 2
+
+
+@pytest.mark.parametrize("leak", [0.0, 2.0])
+def test_k_kf_leak_bounds_the_drift_of_a_banked_curve(vehicle, leak):
+    """A steady curve (r ~ 0.1 rad/s at 20 m/s) with 0.34 m/s^2 of unmodelled ay (2 deg of
+    bank): the paper's K-KF settles at a vy error of b / r (module docstring), the leak
+    (``vy_leak_time_constant``, slipd's default 2 s) bounds it near b tau."""
+    veh = cog_vehicle(vehicle)
+    n, bank = 4000, 0.34
+    U, beta = single_track_ticks(veh, np.full(n, 0.013), ay_offset=bank, noise=False)
+    OUT, _ = run(k_kf, U, veh, {"vy_leak_time_constant": leak})
+    r = U[-1, In.YAW_RATE]
+    error = OUT[-500:, Out.VY] - 20.0 * np.tan(beta[-500:])
+    assert 0.09 < r < 0.11
+    if leak:  # measured 0.63 m/s, b tau = 0.68
+        assert np.abs(error).max() < 1.2 * bank * leak
+    else:  # measured 4.3 m/s, b / r = 3.4: 12 deg of beta for the whole curve
+        assert np.abs(error).max() > 0.8 * bank / r
 
 
 def test_k_kf_zeroes_vy_on_straights(vehicle):
