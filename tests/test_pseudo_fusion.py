@@ -268,16 +268,16 @@ def test_wbe_recursion_is_the_batch_ridge_estimate_of_eq_24(vehicle):
 
 
 def test_wbe_shift_advances_every_past_row_by_the_known_change(vehicle):
-    """wbe_shift (slipd's speed shift moves the rows by the rear axle's speed change; any d
-    here): after rows j = 0..k with shifts d_j applied before each, M^-1 g is the eq. 24 ridge
-    estimate over rows whose xi is advanced by the shifts since them: Y_j + H_j sum_{i>j} d_i."""
+    """wbe_shift (slipd's speed shift moves the rows by the rear axle's speed change): after
+    rows j = 0..k with vx shifts d_j applied before each, M^-1 g is the eq. 24 ridge estimate
+    over rows whose xi is advanced by the shifts since them: Y_j + H_j sum_{i>j} d_i."""
     rng = np.random.default_rng(5)
     rho, ridge = 0.98, 0.5
     state = started_wbe(rho, ridge)
     rows, shifts = [], []
     for k in range(200):
-        d = rng.normal(0.0, [0.05, 0.02, 0.01]) if k else np.zeros(3)
-        wbe.wbe_shift(state, d[0], d[1], d[2], ridge)
+        d = np.array([rng.normal(0.0, 0.05) if k else 0.0, 0.0, 0.0])
+        wbe.wbe_shift(state, d[0], ridge)
         shifts.append(d)
         steer = 0.08 * math.sin(0.07 * k)
         H = wbe_rows(vehicle, steer)

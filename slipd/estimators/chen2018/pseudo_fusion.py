@@ -360,12 +360,12 @@ def _update_and_fuse(state, params, vehicle, u, steer, fx, fz, ax, ax_ok, ay, ay
         params[PARAMS.R_AY_DBE], vx_meas, vx_ok, params[PARAMS.R_VX_DBE],
     )  # fmt: skip
     v_fl, v_fr, v_rl, v_rr, ok_fl, ok_fr, ok_rl, ok_rr = wheel_speeds(u)
+    # slipd: the rows seen so far follow the rear axle's speed (module docstring of wbe); NaN
+    # minus anything is NaN, so a tick without both rear wheels, or after one, shifts nothing
     rear_speed = 0.5 * (v_rl + v_rr) if ok_rl and ok_rr else math.nan
-    if params[PARAMS.WBE_SPEED_SHIFT] > 0.5:
-        # slipd: the rows seen so far follow the rear axle's speed (module docstring of wbe)
-        if math.isfinite(rear_speed) and math.isfinite(state[S.WBE_REAR_SPEED]):
-            wbe_shift(state, rear_speed - state[S.WBE_REAR_SPEED], 0.0, 0.0,
-                      params[PARAMS.RIDGE])
+    speed_change = rear_speed - state[S.WBE_REAR_SPEED]
+    if params[PARAMS.WBE_SPEED_SHIFT] > 0.5 and math.isfinite(speed_change):
+        wbe_shift(state, speed_change, params[PARAMS.RIDGE])
     state[S.WBE_REAR_SPEED] = rear_speed
     wbe_update(
         state, (v_fl, v_fr, v_rl, v_rr), (ok_fl, ok_fr, ok_rl, ok_rr), steer, vehicle,

@@ -17,11 +17,12 @@ slipd (``wbe_speed_shift``, default 1; 0 is the paper): before each tick's rows,
 far are advanced by the change of the rear axle's speed since the last tick, d = [v_r,k -
 v_r,k-1, 0, 0] with v_r the mean of the rear wheels' speeds (their rows are [1, 0, -+b_r]: the
 mean is vx itself), by ``wbe_shift``: in information form g += D d with D = M - k1 I, so the
-ridge stays centred on 0. The paper's xi is constant over the memory, which a braking or
-accelerating car is not: vx lags (below) and the front rows, whose only other unknown is
-sin d vy, turn that lag into vy. The shift is the wheels' own difference: no IMU offset enters
-(moving xi with the accelerometers instead, vx' = ax + r vy and vy' = ay - r vx, imported their
-offsets through the same front rows: measured worse on the simulator's seed 1).
+ridge stays centred on 0 (no shift across a tick without both rear wheels). The paper's xi is
+constant over the memory, which a braking or accelerating car is not: vx lags (below) and the
+front rows, whose only other unknown is sin d vy, turn that lag into vy. The shift is the
+wheels' own difference: no IMU offset enters (moving xi with the accelerometers instead, vx' =
+ax + r vy and vy' = ay - r vx, imported their offsets through the same front rows: measured
+worse on the simulator's seed 1).
 
 Error covariance for the fusion: s^2 M^-1 / (1 + rho) with s^2 the exponentially weighted mean
 squared residual (the variance of an exponentially weighted mean). As in the paper, xi is
@@ -82,20 +83,14 @@ def inverse_sym3(m00, m01, m02, m11, m12, m22):
 
 
 @nb.njit(cache=True)
-def wbe_shift(state, d0, d1, d2, ridge):
-    """Move the rows seen so far by a known change d = (d0, d1, d2) of xi since the last tick:
-    g += D d with D = M - k1 I the data part of M, so that M^-1 g is the minimiser of eq. 24
-    with every past row's xi advanced by d (the data's least-squares fit moves by exactly d; the
-    ridge k1 I stays centred on 0)."""
-    m00 = state[WBE_M] - ridge
-    m01 = state[WBE_M + 1]
-    m02 = state[WBE_M + 2]
-    m11 = state[WBE_M + 3] - ridge
-    m12 = state[WBE_M + 4]
-    m22 = state[WBE_M + 5] - ridge
-    state[WBE_G] += m00 * d0 + m01 * d1 + m02 * d2
-    state[WBE_G + 1] += m01 * d0 + m11 * d1 + m12 * d2
-    state[WBE_G + 2] += m02 * d0 + m12 * d1 + m22 * d2
+def wbe_shift(state, d_vx, ridge):
+    """Advance the rows seen so far by a known change ``d_vx`` of vx since the last tick:
+    g += D [d_vx, 0, 0]' with D = M - k1 I the data part of M, so that M^-1 g is the minimiser
+    of eq. 24 with every past row's vx advanced by d_vx (the data's least-squares fit moves by
+    exactly that; the ridge k1 I stays centred on 0)."""
+    state[WBE_G] += (state[WBE_M] - ridge) * d_vx
+    state[WBE_G + 1] += state[WBE_M + 1] * d_vx
+    state[WBE_G + 2] += state[WBE_M + 2] * d_vx
 
 
 @nb.njit(cache=True)
