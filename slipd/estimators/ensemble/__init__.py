@@ -149,7 +149,6 @@ from slipd.estimators.ensemble.state import (
     FUSION_END,
     LAYOUT,
     MEMBERS,
-    MONITOR_SIZE,
     N_MEMBERS,
     PERSISTENT,
     WITNESS_MEMBER,
@@ -248,8 +247,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     state[F.PARAMS_BOUNDS : F.PARAMS_BOUNDS + N_MEMBERS + 1] = params_bounds
     state[F.VARIANCE : F.VARIANCE + N_MEMBERS] = np.nan
     for m in range(N_MEMBERS):
-        state[F.MONITOR + m * MONITOR_SIZE : F.MONITOR + (m + 1) * MONITOR_SIZE] = (
-            consistency.new_state())
+        _member_monitor(state, m)[:] = consistency.new_state()
     state[F.CONSISTENT : F.CONSISTENT + N_MEMBERS] = 1.0
     state[F.CALIBRATED_SIGMA : F.CALIBRATED_SIGMA + N_MEMBERS] = np.nan
     for m, name in enumerate(MEMBERS):
