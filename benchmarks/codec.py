@@ -56,7 +56,7 @@ def main() -> None:
                             codec.calibration, t, np.zeros(n, np.int64), ids, flags, dlc,
                             data, np.array([t[-1]]), np.array([n], np.int64), state.latch,
                             state.msg_state,
-                            state.errors, U)
+                            state.errors, state.scratch, U)
         elapsed = time.perf_counter() - started
         assert state.errors[:, kernels.ERR_ACCEPTED].sum() == n, "every frame must pass"
         return elapsed

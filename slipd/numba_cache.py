@@ -20,6 +20,19 @@ call :func:`use_keyed_cache`, which sets ``NUMBA_CACHE_DIR`` for the process and
 processes it starts and prunes the caches of old source versions.
 
 Hashing the ~1 MB of sources takes a few ms, once per process.
+
+Without numba's runtime: the kernels of the per-frame and per-tick path (codec, estimators,
+the log parser) are decorated ``@nb.njit(cache=True, _nrt=False)``. With the runtime (NRT)
+numba counts references to every array a kernel hands an inlined helper or a call (an atomic
+increment and a decrement through a function pointer each), and its pruning pass does not
+remove them across branches (numba issue #2350, where its authors measure the same flag):
+decoding a frame took 18 such calls, 78 % of the decode's time (173 -> 38 ns a frame, outputs
+identical). slipd's kernels allocate nothing (arrays come from the caller), so they need no
+runtime; one that allocates does not compile without it. ``inline="always"`` helpers are
+compiled into their callers with the callers' options and keep the default (Python may call
+them on arrays). tests/test_api.py lists the few kernels there that keep the runtime.
+``_nrt`` is numba's private name for the option (it came with the runtime, numba PR #1077):
+a numba that dropped it would refuse to compile these kernels, not run them differently.
 """
 
 from __future__ import annotations

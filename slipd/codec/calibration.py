@@ -76,7 +76,7 @@ def calibration_vector(calibration: Calibration) -> np.ndarray:
     return cal
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _rotate_into(cal, offset, u, i0, i1, i2, n0, n1, n2):
     """u[i] <- (R (v - offset))[i] for the valid ones of the three channels; invalid ones
     enter at their nominal value n and keep their latched value."""
@@ -96,7 +96,7 @@ def _rotate_into(cal, offset, u, i0, i1, i2, n0, n1, n2):
         u[i2] = cal[r + 6] * v0 + cal[r + 7] * v1 + cal[r + 8] * v2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def calibrate(cal, u):
     """Correct one tick's input vector ``u`` [U_LEN] in place (see the module docstring).
     Allocates nothing; returns at once when ``cal[CAL_ACTIVE]`` is 0."""

@@ -201,7 +201,7 @@ def _raw_words(plan_i, row, data, le, be):
     return (le >> np.uint64(position)) & mask
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _put_raw(plan_i, row, raw, out):
     """Write the low S_LENGTH bits of ``raw`` into the payload ``out`` at the signal's place."""
     length = plan_i[row, S_LENGTH]
@@ -266,13 +266,13 @@ def _physical_of_raw(plan_i, plan_f, row, raw):
     return value * plan_f[row, F_SCALE] + plan_f[row, F_OFFSET]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def signal_physical(plan_i, plan_f, row, data):
     """Physical value (DBC units) of signal ``row`` in a payload, before sign and qualifier."""
     return _physical_of_raw(plan_i, plan_f, row, _raw(plan_i, row, data))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def decode_signal(plan_i, plan_f, row, data, dlc):
     """Physical value of one signal row in a payload (tests and diagnostics)."""
     return signal_physical(plan_i, plan_f, row, data)
@@ -474,7 +474,7 @@ def decode_frame(plan_i, plan_f, lookup, bus, frame_id, extended, dlc, data, t, 
 FUTURE_TOLERANCE_S = 1e-6
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def sample_latch(latch, channel_timeouts, calibration, t, u):
     """Sample-and-hold of the latch at tick time ``t`` into the input vector ``u``.
 
@@ -494,10 +494,10 @@ def sample_latch(latch, channel_timeouts, calibration, t, u):
     calibrate(calibration, u)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, calibration, frame_time,
                 frame_bus, frame_id, frame_flags, frame_dlc, frame_data, tick_time, tick_until,
-                latch, msg_state, errors, U):
+                latch, msg_state, errors, scratch, U):
     """The batch engine's front half: decode frames in log order and sample at every tick.
 
     Frames ``[.., tick_until[k])`` are applied before tick ``k`` is sampled at ``tick_time[k]``
@@ -505,9 +505,9 @@ def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, calibration,
     samples; from a log's times that is ``searchsorted(frame_time, tick_time, 'right')``, from
     a flight recorder it is the file order). ``frame_bus`` is each frame's bus index (-1: a
     channel the profile does not read, skipped). ``frame_flags`` bit 0 = extended ID, bit 1 =
-    remote, bit 2 = error frame (the last two are never decoded). Returns frames consumed.
+    remote, bit 2 = error frame (the last two are never decoded). ``scratch`` is
+    decode_frame's (float64 [N_IN], DecodeState.scratch). Returns frames consumed.
     """
-    scratch = np.zeros(latch.shape[1])
     i = 0
     for k in range(tick_time.shape[0]):
         while i < tick_until[k]:
@@ -521,7 +521,7 @@ def latch_ticks(plan_i, plan_f, lookup, timeouts, channel_timeouts, calibration,
     return i
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _raw_of_physical(plan_i, plan_f, row, physical):
     """Raw integer bits of a physical value: clamped to the DBC range and the bit width."""
     length = plan_i[row, S_LENGTH]
@@ -544,7 +544,7 @@ def _raw_of_physical(plan_i, plan_f, row, physical):
     return np.uint64(np.int64(value))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def encode_frame(plan_i, plan_f, msg, values, counter, out):
     """Encode message row ``msg`` from ``values`` (SI, by slot) into ``out`` (uint8[>= dlc]).
 
@@ -593,7 +593,7 @@ def encode_frame(plan_i, plan_f, msg, values, counter, out):
         _put_raw(plan_i, crc_row, np.uint64(code), out)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def encode_rows(plan_i, plan_f, msg, values, first_counter, out):
     """Encode one frame per row of ``values`` [n, slots] into ``out`` [n, dlc]."""
     counter_row = plan_i[msg, M_COUNTER_ROW]

@@ -18,7 +18,7 @@ _SIGMA = int(Tx.SIGMA_BETA)
 UNKNOWN_SIGMA = 1.0e9
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def fill_tx(out, estimator_id, tx):
     """Write SLIPD_STATE/AUX slots from ``out``. A non-finite value becomes 0 (its frame is
     then not VALID, see supervision.supervise; the bits must still be defined), except an
@@ -36,7 +36,7 @@ def fill_tx(out, estimator_id, tx):
     tx[_ESTIMATOR_ID] = estimator_id
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def fill_tx_rows(OUT, estimator_id, TX):
     for k in range(OUT.shape[0]):
         fill_tx(OUT[k], estimator_id, TX[k])

@@ -254,7 +254,7 @@ def innovation_ratio(state, nis, params, dt):
     return nis / math.exp(_log_nis_level(state))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def monitor(state, u, out, witness, params, vehicle, dt):
     """Check ``out`` (the supervised outputs of one tick) against the witnesses; clear VALID
     and set DEGRADED as the module docstring says, write the calibrated SIGMA_BETA. ``witness``
@@ -385,7 +385,7 @@ def monitor(state, u, out, witness, params, vehicle, dt):
     state[S.NIS_RATIO] = nis_ratio
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def monitor_ticks(state, U, OUT, WITNESS, params, vehicle, tick_dt):
     """``monitor`` over a recording: ``tick_dt[k]`` is the time of tick k's steps (dt times
     its catch-up steps)."""

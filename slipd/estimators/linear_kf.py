@@ -133,7 +133,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     return state
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def single_track_matrices(vx, vehicle):
     """A, B, C, D of the linear single-track model at speed ``vx`` > 0 (module docstring), as
     tuples: A row-major (4), B (2), C's first row (2; its second is [0, 1]), D's first element
@@ -153,7 +153,7 @@ def single_track_matrices(vx, vehicle):
     return A, B, (-sum_c, -moment_c), c_f / mass
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def predict(state, vx, steer, sigma_steer, vehicle, dt):
     """x^- = (I + A dt) x + B dt delta, P^- = F P F' + (B dt) sigma_steer^2 (B dt)'."""
     A, B, _, _ = single_track_matrices(vx, vehicle)
@@ -166,14 +166,14 @@ def predict(state, vx, steer, sigma_steer, vehicle, dt):
     add_input_noise(state, _P, (B[0] * dt, B[1] * dt), sigma_steer * sigma_steer)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def model_ay(state, vx, steer, vehicle):
     """The model's lateral acceleration at the CoG, C[0] x + D[0] delta."""
     _, _, C, D = single_track_matrices(vx, vehicle)
     return C[0] * state[S.VY] + C[1] * state[S.R] + D * steer
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def update(state, ay, ay_ok, yaw_rate, yaw_rate_ok, vx, steer, r_ay, r_yaw_rate, vehicle):
     """x, P with y = [ay, r] (H = C, innovation y - C x - D delta); a measurement flagged not
     ok is left out. Returns the normalised innovation squared and the number of measurements
@@ -193,7 +193,7 @@ def update(state, ay, ay_ok, yaw_rate, yaw_rate_ok, vx, steer, r_ay, r_yaw_rate,
     return nis, int(ay_ok) + int(yaw_rate_ok)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _start(state, vx, yaw_rate, steer, p0_vy, p0_r):
     """(Re)start at vy = 0 (straight-running assumption), r = measured, P = P0."""
     state[S.VY] = 0.0
@@ -207,7 +207,7 @@ def _start(state, vx, yaw_rate, steer, p0_vy, p0_r):
     state[S.NIS_MEAN] = math.nan
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def step(state, u, params, vehicle, dt, out):
     """One 100 Hz tick; writes every element of ``out``, allocates nothing."""
     min_speed = params[PARAMS.MIN_SPEED]
@@ -259,7 +259,7 @@ def step(state, u, params, vehicle, dt, out):
     out[Out.NIS] = state[S.NIS_MEAN]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

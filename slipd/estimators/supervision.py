@@ -91,12 +91,12 @@ def supervision_plan(required: Iterable[int], plan=None) -> np.ndarray:
     return vector
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _within(value, low, high):
     return math.isfinite(value) and low <= value <= high
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def supervise(u, plan, out):
     """Add the input-supervision bits to ``out[STATUS]`` and decide VALID (in place)."""
     status = int(out[Out.STATUS]) & ~ST_VALID
@@ -117,7 +117,7 @@ def supervise(u, plan, out):
     out[Out.STATUS] = float(status)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def supervise_ticks(U, plan, OUT):
     for k in range(U.shape[0]):
         supervise(U[k], plan, OUT[k])

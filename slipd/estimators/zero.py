@@ -27,7 +27,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     return np.zeros(LAYOUT.size, dtype=np.float64)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def step(state, u, params, vehicle, dt, out):
     rear_left, rear_left_ok = channel(u, In.WHEEL_SPEED_RL)
     rear_right, rear_right_ok = channel(u, In.WHEEL_SPEED_RR)
@@ -44,7 +44,7 @@ def step(state, u, params, vehicle, dt, out):
     write_outputs(out, 0.0, 0.0, vx, 0.0, math.nan, math.nan, 0.0, 0.0, status)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

@@ -96,7 +96,7 @@ class Frames:
                       None if self.line is None else self.line[mask])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _hex(c):
     if 48 <= c <= 57:
         return c - 48
@@ -111,7 +111,7 @@ def _hex(c):
 # the line's bytes ``buf[p:stop]`` (trailing blanks and CR trimmed) and never looks beyond.
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _scan_timestamp(buf, p, stop):
     """``(SECONDS.FRACTION) ``: (code, p, int_part, frac, int_digits, frac_digits, approx).
 
@@ -152,7 +152,7 @@ def _scan_timestamp(buf, p, stop):
     return 0, p + 2, int_part, frac, digits, frac_digits, int_part + approx_frac
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _scan_channel(buf, p, stop):
     """The interface name: (code, p, start, length)."""
     while p < stop and buf[p] == 32:
@@ -165,7 +165,7 @@ def _scan_channel(buf, p, stop):
     return 0, p, start, p - start
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _scan_id(buf, p, stop):
     """``ID#``: (code, p after '#', can_id, digits). Three digits are a standard ID (at most
     7FF), more an extended one; 8 digits may carry the error flag (an error frame); the RTR
@@ -192,13 +192,13 @@ def _scan_id(buf, p, stop):
     return 0, p + 1, can_id, digits
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _valid_fd_length(length):
     return length <= 8 or length == 12 or length == 16 or length == 20 or length == 24 or \
         length == 32 or length == 48 or length == 64
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _scan_payload(buf, p, stop, width, row, data_out):
     """After ``#``: an FD flags nibble (``#F``), a remote frame (``R[DLC]``) or hex data
     bytes written into ``data_out[row]`` (when ``row`` is in range and the byte fits
@@ -249,7 +249,7 @@ def _scan_payload(buf, p, stop, width, row, data_out):
     return 0, p, flags, length
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _scan_marker(buf, p, stop):
     """Optional trailing ``R``/``T`` (python-can's direction): (code, flags)."""
     while p < stop and (buf[p] == 32 or buf[p] == 9):
@@ -263,7 +263,7 @@ def _scan_marker(buf, p, stop):
     return 9, 0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _same_bytes(buf, a, b, length):
     """``buf[a:a+length] == buf[b:b+length]``."""
     for j in range(length):
@@ -272,7 +272,7 @@ def _same_bytes(buf, a, b, length):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _channel_index(buf, start, length, chan_table, n_chan):
     """Index of the channel name ``buf[start:start+length]`` in ``chan_table``, added when
     new: (code, index, n_chan)."""
@@ -294,7 +294,7 @@ def _channel_index(buf, start, length, chan_table, n_chan):
     return 0, n_chan, n_chan + 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _line_bounds(buf, pos):
     """(first non-blank byte, end after trimming blanks/CR, start of the next line)."""
     n = buf.shape[0]
@@ -321,7 +321,7 @@ _POW10_INT = np.array([10**k for k in range(19)], dtype=np.int64)
 _POW10_FLOAT = np.array([10.0**k for k in range(19)])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _decimal(buf, p, most):
     """The decimal digits from ``p``: (value, count, position after them), reading at most
     ``most`` + 1 digits (a count over ``most`` means too many)."""
@@ -334,7 +334,7 @@ def _decimal(buf, p, most):
     return value, count, p
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _scan_plain_line(buf, pos, width, row, data_out):
     """The common line in one pass: ``(SECONDS.FRACTION) CHANNEL ID#HEXDATA`` then a newline
     (or the buffer's end), one blank between the fields, a classic data frame of at most 8
@@ -461,7 +461,7 @@ def _scan_known_shape(buf, pos, digits, frac_digits, chan_start, chan_len, row, 
     return 1, p + 1, int_part, frac, here, can_id, id_digits, length
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _parse(buf, width, skip_bad, t_out, id_out, flags_out, dlc_out, data_out, chan_out,
            line_out, chan_table, bad_out, fallback_out, line_shift=0, one_pass=True,
            known_shape=True):
@@ -601,7 +601,7 @@ _LOW7 = np.uint64(0x7F7F7F7F7F7F7F7F)
 _NEWLINES = np.uint64(0x0A0A0A0A0A0A0A0A)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _count_newlines(buf, head):
     """Newline bytes in ``buf``: the ``head`` bytes before its first 8-byte aligned address
     one by one, then words (a byte x of w ^ 0x0A.. is 0 exactly when ((x & 0x7F) + 0x7F) | x

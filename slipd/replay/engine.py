@@ -196,7 +196,7 @@ def latch_log(frames: Frames, profile: Profile, tick_time: np.ndarray | None = N
     kernels.latch_ticks(p.plan_i, p.plan_f, p.lookup, p.timeouts, codec.channel_timeouts,
                         codec.calibration, frames.t, buses, frames.frame_id, frames.flags,
                         frames.dlc.astype(np.int64), data, ticks, tick_until, s.latch,
-                        s.msg_state, s.errors, U)
+                        s.msg_state, s.errors, s.scratch, U)
     return Inputs(ticks, U, codec.error_counts(), len(frames))
 
 

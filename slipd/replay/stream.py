@@ -460,7 +460,7 @@ class Latcher:
                                 self.codec.channel_timeouts, self.codec.calibration, pending.t,
                                 bus, pending.frame_id,
                                 pending.flags, pending.dlc.astype(np.int64), data, ticks,
-                                tick_until, s.latch, s.msg_state, s.errors, U)
+                                tick_until, s.latch, s.msg_state, s.errors, s.scratch, U)
         else:
             U = np.zeros((0, U_LEN))
         self._pending = _piece(pending, used, len(pending))

@@ -33,14 +33,14 @@ _TWO52 = 4503599627370496.0
 _TIE_ULPS = 4.5e-16  # two ulps of the scaled value, relative
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _put_text(out, p, text):
     for j in range(text.shape[0]):
         out[p + j] = text[j]
     return p + text.shape[0]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _put_uint(out, p, value, min_digits):
     """Decimal digits of ``value`` (>= 0), at least ``min_digits`` (zero-padded)."""
     n = 0
@@ -56,7 +56,7 @@ def _put_uint(out, p, value, min_digits):
     return p + n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _put_fixed(out, p, x, decimals):
     """``format(x, f".{decimals}f")`` into ``out`` at ``p``; returns the end, or -1 where the
     value needs Python (a near tie, or too large to scale exactly)."""
@@ -100,7 +100,7 @@ def _put_fixed(out, p, x, decimals):
     return p
 
 
-@nb.njit(cache=True, nogil=True)  # the CSV writer overlaps the stages before it
+@nb.njit(cache=True, nogil=True, _nrt=False)  # the CSV writer overlaps the stages before it
 def format_rows(values, decimals, text, text_at, out, python_rows, row_end):
     """CSV lines of ``values`` [n, k] into ``out`` (uint8, :func:`row_room` bytes a row):
     column j with ``decimals[j]`` digits after the point (INTEGER: a whole number; plus

@@ -26,13 +26,13 @@ BURCKHARDT_SNOW = (0.1946, 94.129, 0.0646)
 MIN_LOAD_SHARE = 0.05
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def burckhardt(slip, c1, c2, c3):
     """Burckhardt's mu(lambda) = c1 (1 - exp(-c2 lambda)) - c3 lambda for lambda >= 0."""
     return c1 * (1.0 - math.exp(-c2 * slip)) - c3 * slip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def map_region(slip, mu_measured, curve_high, curve_low, low_peak, slip_min, band, high_margin,
                min_gap):  # fmt: skip
     """Region of a (slip, mu) point on a classification map (Fig. 10): +1 high grip (red),
@@ -67,7 +67,7 @@ def map_region(slip, mu_measured, curve_high, curve_low, low_peak, slip_min, ban
     return 0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def burckhardt_peak(c1, c2, c3):
     """Maximum of the Burckhardt curve: d mu / d lambda = c1 c2 exp(-c2 lambda) - c3 = 0."""
     if c3 <= 0.0:
@@ -76,7 +76,7 @@ def burckhardt_peak(c1, c2, c3):
     return burckhardt(max(slip, 0.0), c1, c2, c3)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def wheel_loads(ax, ay, vehicle):
     """eq. 20: F_zi = k1 m g + k2 m A_x + k3 m A_y with the rigid-body coefficients
     k1 = static share (l_r / 2l front, l_f / 2l rear), k2 = -+ h / 2l (accelerating moves load
@@ -88,7 +88,7 @@ def wheel_loads(ax, ay, vehicle):
                              MIN_LOAD_SHARE * static_r)  # fmt: skip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def longitudinal_point(wheel_speed, wheel_accel, drive, brake, vx_wheel, fz, vehicle):
     """(lambda, mu_x) of one wheel: eq. 17 lambda = (V_w - V_x) / max(V_w, V_x) with V_x the
     estimate referred to the wheel; eq. 21 F_x = (T_en - T_br - J omega_dot) / R with
@@ -100,7 +100,7 @@ def longitudinal_point(wheel_speed, wheel_accel, drive, brake, vx_wheel, fz, veh
     return slip, force / fz
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _low_curve(alpha, fz_axle, mu_low, a_c, b_c, a_k, b_k, k_floor):
     """|mu_y| of the observer's own axle model (eq. 8, 10) at the low reference friction and
     the curve's peak C_r / k / Fz."""
@@ -108,7 +108,7 @@ def _low_curve(alpha, fz_axle, mu_low, a_c, b_c, a_k, b_k, k_floor):
     return abs(tyre_force(alpha, c_l, k_l)[0]) / fz_axle, c_l / k_l / fz_axle
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def classify_tick(
     state, u, ax, ay, yaw_acc, steer, alpha_f, alpha_r, force_f_high, force_r_high, speeds,
     speeds_ok, wheel_acc, vx, vehicle, mu_low, k_floor, burckhardt_high, burckhardt_low,
@@ -189,7 +189,7 @@ def classify_tick(
     return any_high, any_low
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def classifier_update(state, any_high, any_low, persistence_ticks, mu_high, mu_low):
     """The boolean mu bar of Sec. 3: a high-grip point while mu bar = 0 switches to high, a
     low-grip point while mu bar = 1 switches to low, anything else keeps it. A switch needs the

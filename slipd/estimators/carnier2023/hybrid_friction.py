@@ -361,7 +361,7 @@ def _classify(state, u, params, vehicle, ax, ay, yaw_acc, steer, alpha_f, alpha_
     )  # fmt: skip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def step(state, u, params, vehicle, dt, out):
     """One tick of the full observer (Fig. 1); writes every element of ``out``, allocates
     nothing."""
@@ -429,7 +429,7 @@ def step(state, u, params, vehicle, dt, out):
            sigma, classifier_on, status)  # fmt: skip
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

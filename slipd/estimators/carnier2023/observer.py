@@ -104,7 +104,7 @@ SECANT_MIN_VY = 0.02
 # ---------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def load_transfer_weight(wheel_x, wheel_y, transfer_angle, gamma_minus, gamma_plus):
     """k_wi of eq. 3: 1 when the wheel lies within [-gamma_minus, +gamma_plus] of the load
     transfer direction (angles of the wheel position seen from the CoG), else 0 (Fig. 5)."""
@@ -113,7 +113,7 @@ def load_transfer_weight(wheel_x, wheel_y, transfer_angle, gamma_minus, gamma_pl
     return 1.0 if -gamma_minus <= d <= gamma_plus else 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _insert_sorted(buf, n, value):
     """Insert ``value`` into the sorted ``buf[_SORT0:_SORT0 + n]``; returns n + 1."""
     i = n
@@ -124,7 +124,7 @@ def _insert_sorted(buf, n, value):
     return n + 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _quantile_sorted(buf, n, q):
     """Quantile q of the sorted ``buf[_SORT0:_SORT0 + n]``, linear interpolation (numpy's
     default "linear" method: position q (n - 1))."""
@@ -135,7 +135,7 @@ def _quantile_sorted(buf, n, q):
     return buf[_SORT0 + lo] + frac * (buf[_SORT0 + hi] - buf[_SORT0 + lo])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def vx_from_wheels_lt(
     state, c_fl, c_fr, c_rl, c_rr, ok_fl, ok_fr, ok_rl, ok_rr, ax, ay, vehicle,
     gamma_minus, gamma_plus, min_transfer_accel, iqr_scale,
@@ -225,7 +225,7 @@ def _add_deviation(total, n, ok, wheel_accel, ax):
     return total + abs(wheel_accel - ax), n + 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def kx_gain(
     a_fl, a_fr, a_rl, a_rr, ok_fl, ok_fr, ok_rl, ok_rr, ax, threshold, kx_min, kx_max
 ):  # fmt: skip
@@ -247,7 +247,7 @@ def kx_gain(
 # ---------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def tyre_coefficients(mu, a_c, b_c, a_k, b_k, k_floor):
     """eq. 10: C_r(mu) = a_C mu + b_C, k(mu) = a_k mu + b_k (interpolation between the two
     reference characteristics, extrapolation outside). ``k_floor`` keeps k positive when mu is
@@ -261,13 +261,13 @@ def tyre_coefficients(mu, a_c, b_c, a_k, b_k, k_floor):
     return c_r, k
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def tyre_force(alpha, c_r, k):
     """eq. 8: F_y = C_r / k tanh(k alpha) and its slope dF_y/dalpha = C_r (1 - tanh^2)."""
     return tanh_tyre(alpha, k, c_r / k, c_r)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def axle_forces(alpha_f, alpha_r, mu, state, k_floor):
     """eq. 8, 10 for both axles at friction ``mu``: (F_yF, dF_yF/dalpha, F_yR, dF_yR/dalpha)."""
     t = TYRE0
@@ -280,7 +280,7 @@ def axle_forces(alpha_f, alpha_r, mu, state, k_floor):
     return force_f, slope_f, force_r, slope_r
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def lateral_model(vx, vy, yaw_rate, steer, mu, state, vehicle, k_floor):
     """eq. 7-10: A_y hat = (F_yF cos(delta) + F_yR) / m at friction ``mu`` and its slope
     d A_y hat / d vy (the xi of eq. 11 when mu is the nominal friction).
@@ -299,7 +299,7 @@ def lateral_model(vx, vy, yaw_rate, steer, mu, state, vehicle, k_floor):
     return ay_hat, slope, alpha_f, alpha_r
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def mu_for_peak(utilisation, fz, a_c, b_c, a_k, b_k):
     """The mu at which the eq. 8-10 axle peak C_r(mu) / k(mu) equals ``utilisation`` x Fz:
     a_C mu + b_C = u Fz (a_k mu + b_k), linear in mu. NaN when no such mu exists."""
@@ -309,7 +309,7 @@ def mu_for_peak(utilisation, fz, a_c, b_c, a_k, b_k):
     return (utilisation * fz * b_k - b_c) / denominator
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def mu_for_utilisation(state, utilisation, vehicle):
     """Lowest mu whose model peak reaches ``utilisation`` (|A_y| / g) on both axles (static
     loads). Eq. 10's linear k(mu) puts the peak of an intermediate mu below mu itself, so the
@@ -329,7 +329,7 @@ def mu_for_utilisation(state, utilisation, vehicle):
     return floor
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def linear_slope(vx, vehicle, state):
     """xi_lin: d A_y / d vy of the linear tyre range at the nominal friction (the cornering
     stiffnesses C_r(mu_nominal) of both axles), -(C_F + C_R) / (m vx) < 0."""
@@ -465,7 +465,7 @@ def _friction_floor(state, mu, ay, ay_ok, vehicle, utilisation_floor, dt):
     return mu
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def observer_step(
     state, ax, ay, ay_ok, yaw_rate, steer, vx_tilde, vx_ok, kx, vehicle, dt,
     ky_min, ky_max, beta_rate_threshold, k_mu, k_mu_bar, beta_rate_mu_threshold,
@@ -542,7 +542,7 @@ def observer_step(
 # ---------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def reset_observer(state, vx, mu_default):
     """(Re)start the observer: vx = V_x tilde, vy = 0 (straight-running assumption), mu at the
     current attraction value (the classifier's class survives a reset)."""
@@ -562,7 +562,7 @@ def reset_observer(state, vx, mu_default):
         state[S.PREV_YAW_RATE] = 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def state_is_finite(state):
     for i in range(_CHECKED_END):
         if not math.isfinite(state[i]):

@@ -38,7 +38,7 @@ MIN_WHEEL_SPEED = 0.1
 MIN_LOAD_SHARE = 0.05
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def vertical_loads(ax, ay, vehicle):
     """Eq. 6 (ISO 8855 signs, see ``pseudo_fusion``; ``common.tyres.wheel_loads``): (Fz_FL,
     Fz_FR, Fz_RL, Fz_RR) [N] with longitudinal transfer m ax h / (2 l) from front to rear and
@@ -50,7 +50,7 @@ def vertical_loads(ax, ay, vehicle):
     return wheel_loads(ax, ay, vehicle, floor, floor)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _wheel_force(vx, vy, r, x_pos, y_pos, steer, fz, vehicle):
     """Lateral force of one wheel at (x_pos, y_pos) (eq. 5, 7) and its gradient wrt (vx, vy, r)."""
     num = vy + x_pos * r  # lateral velocity of the wheel centre
@@ -74,7 +74,7 @@ def _wheel_force(vx, vy, r, x_pos, y_pos, steer, fz, vehicle):
     )
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def three_dof(vx, vy, r, steer, fx_fl, fx_fr, fx_rl, fx_rr, fz_fl, fz_fr, fz_rl, fz_rr, vehicle):
     """Eq. 4 with eq. 5-7: derivatives, the accelerations it implies and their Jacobians.
 
@@ -138,7 +138,7 @@ def three_dof(vx, vy, r, steer, fx_fl, fx_fr, fx_rl, fx_rr, fz_fl, fz_fr, fz_rl,
     )  # fmt: skip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def dbe_predict(state, steer, fx, fz, vehicle, q_vx, q_vy, q_r, dt):
     """Eq. 9-10: x^- = x + f T + A f T^2 / 2, P^- = phi P phi' + Q, phi = I + A T.
 
@@ -165,7 +165,7 @@ def dbe_predict(state, steer, fx, fz, vehicle, q_vx, q_vy, q_r, dt):
                        (per_step(q_vx, dt, 1.0), per_step(q_vy, dt, 1.0), per_step(q_r, dt, 1.0)))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def dbe_update(state, steer, fx, fz, vehicle, ax, ax_ok, r_ax, ay, ay_ok, r_ay, vx_meas, vx_ok,
                r_vx):  # fmt: skip
     """Eq. 11-13 with y = [ax, ay, vx_wheels], h linearised at the prior; the scalar updates

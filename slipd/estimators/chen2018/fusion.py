@@ -59,7 +59,7 @@ from slipd.numba_cache import nb
 CROSS_CORRELATION_LIMIT = 0.9
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def positive_part_2x2(a, b, c):
     """Positive part of the symmetric [[a, b], [b, c]] (negative eigenvalues set to 0)."""
     half_trace = 0.5 * (a + c)
@@ -79,7 +79,7 @@ def positive_part_2x2(a, b, c):
     return a, b, c
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def update_difference_moments(state, i0, d_gamma, d_beta, gain):
     """D = D + gain (d d' - D) for one pair (gg, gb, bb at ``i0``)."""
     state[i0] += gain * (d_gamma * d_gamma - state[i0])
@@ -87,7 +87,7 @@ def update_difference_moments(state, i0, d_gamma, d_beta, gain):
     state[i0 + 2] += gain * (d_beta * d_beta - state[i0 + 2])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _set_block(state, i, j, gg, gb, bg, bb):
     """P block (i, j) (estimators 0..2) into the 6x6 scratch, and its transpose into (j, i)."""
     base = SCRATCH_P + 12 * i + 2 * j
@@ -103,7 +103,7 @@ def _set_block(state, i, j, gg, gb, bg, bb):
         state[base + 7] = bb
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _cholesky_solve_lambda(state):
     """Z = P^-1 L for the 6x6 P in the scratch (overwritten by its Cholesky factor) and
     L = [I I I]'. Returns False when P is not positive definite."""
@@ -137,7 +137,7 @@ def _cholesky_solve_lambda(state):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _block_inverse_into_z(state, i, p):
     """Rows 2i, 2i + 1 of Z = P^-1 L for a block-diagonal P: the inverse of the symmetric
     block p = (gg, gb, bb). Returns False when the block is not positive definite."""
@@ -152,7 +152,7 @@ def _block_inverse_into_z(state, i, p):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _clip(value, limit):
     if value > limit:
         return limit
@@ -161,7 +161,7 @@ def _clip(value, limit):
     return value
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _clip_cross(c, pi, pj):
     """Cross block (gg, gb, bg, bb) from the symmetric (gg, gb, bb) estimate ``c``, each element
     clipped to CROSS_CORRELATION_LIMIT sqrt(var_i var_j)."""
@@ -296,7 +296,7 @@ def _weights(state, x1, x2, x3):
     return gamma0, beta0, v11
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def fuse(state, own1, own2, own3, x1, x2, x3, variance_mode, use_cross, floor):
     """Eq. 38-39 with P built as in the module docstring.
 
@@ -325,7 +325,7 @@ def fuse(state, own1, own2, own3, x1, x2, x3, variance_mode, use_cross, floor):
     return _weights(state, x1, x2, x3)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def own_covariances(state, sigma_yaw_rate, forgetting):
     """Each estimator's own (gamma, beta) covariance C_i as (gg, gb, bb) triples, and its beta
     (``sigma_yaw_rate``: the gyro's error, gamma_1; ``forgetting``: the WBE's rho)."""

@@ -25,7 +25,7 @@ MIN_STRAIGHT_WEIGHT = 1e-6
 _KBE_VX = int(S.KBE_VX)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def kbe_predict(state, ax, ay, yaw_rate, q_vx, q_vy, dt):
     """Eq. 2, forward Euler: vx += (ax + vy r) dt, vy += (ay - vx r) dt; P = F P F' + Q dt."""
     vx = state[S.KBE_VX]
@@ -36,7 +36,7 @@ def kbe_predict(state, ax, ay, yaw_rate, q_vx, q_vy, dt):
                        (per_step(q_vx, dt, 1.0), per_step(q_vy, dt, 1.0)))  # fmt: skip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def kbe_update(state, vx_meas, vx_ok, r_vx, r_vy0, straight):
     """vx from the wheels (if any) and the vy = 0 pseudo-measurement (slipd's bound on the
     integral of eq. 2) with variance r_vy0 / ``straight``: full strength on a straight, none

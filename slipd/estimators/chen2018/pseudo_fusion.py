@@ -220,7 +220,7 @@ def new_state() -> np.ndarray:
     return state
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def reset_state(state, vx, yaw_rate, params, parts):
     """(Re)start the estimators named by the bits ``parts`` at vy = 0 (straight-running
     assumption), vx and r as measured. Restarting the fusion restarts the tick counter."""
@@ -264,7 +264,7 @@ def reset_state(state, vx, yaw_rate, params, parts):
         state[S.TICKS] = 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _finite(state, first, last):
     for i in range(first, last + 1):
         if not math.isfinite(state[i]):
@@ -272,7 +272,7 @@ def _finite(state, first, last):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def insane_parts(state):
     """Bits of the estimators whose state must restart: non-finite, or outside their model's
     domain (DBE: |vy| < vx, beta within +-45 deg, the tyre model's; KBE: |vy| < 2 vx, the
@@ -398,7 +398,7 @@ def _update_and_fuse(state, params, vehicle, u, steer, fx, fz, ax, ax_ok, ay, ay
             (beta2, state[S.DBE_VX], own2[2]), (beta3, state[S.WBE_VX], own3[2]))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def step(state, u, params, vehicle, dt, out):
     """One tick: update the three estimators with tick k's measurements, fuse (eq. 38-39),
     write ``out`` (the part selected by params[PART]) and predict to tick k + 1 with tick k's
@@ -464,7 +464,7 @@ def step(state, u, params, vehicle, dt, out):
     _write(out, beta, vx, ax, ay, yaw_rate, sigma, roll, status)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

@@ -41,7 +41,7 @@ from slipd.estimators.chen2018.state import WBE_G, WBE_M, S
 from slipd.numba_cache import nb
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _wbe_row(state, h0, h1, h2, y):
     """Accumulate one row of eq. 15 into M += h h', g += h y."""
     state[WBE_M] += h0 * h0
@@ -55,13 +55,13 @@ def _wbe_row(state, h0, h1, h2, y):
     state[WBE_G + 2] += h2 * y
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _residual(h0, h1, h2, y, x0, x1, x2):
     e = y - (h0 * x0 + h1 * x1 + h2 * x2)
     return e * e
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def inverse_sym3(m00, m01, m02, m11, m12, m22):
     """Inverse of a symmetric positive definite 3x3 by cofactors: (i00, i01, i02, i11, i12,
     i22), or all NaN when it is singular."""
@@ -82,7 +82,7 @@ def inverse_sym3(m00, m01, m02, m11, m12, m22):
     )
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def wbe_shift(state, d_vx, ridge):
     """Advance the rows seen so far by a known change ``d_vx`` of vx since the last tick:
     g += D [d_vx, 0, 0]' with D = M - k1 I the data part of M, so that M^-1 g is the minimiser
@@ -93,7 +93,7 @@ def wbe_shift(state, d_vx, ridge):
     state[WBE_G + 2] += state[WBE_M + 2] * d_vx
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def wbe_update(state, wheel_speeds, wheel_ok, steer, vehicle, rho, ridge):
     """Eq. 24-25 in information form (module docstring): M = rho M + H'H + (1 - rho) k1 I,
     g = rho g + H'Y, xi = M^-1 g. Invalid wheels leave their rows out; with no valid wheel

@@ -23,7 +23,7 @@ from slipd.estimators.common.filters import lowpass
 from slipd.numba_cache import nb
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def tri(i, j, n):
     """Offset of element (i, j) of a symmetric n x n matrix stored as its upper triangle."""
     if i > j:
@@ -31,7 +31,7 @@ def tri(i, j, n):
     return i * n - (i * (i - 1)) // 2 + (j - i)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def per_step(variance, dt, interval):
     """The process noise of one step of ``dt`` from a random walk's ``variance`` per
     ``interval`` seconds (the variance of a random walk grows linearly in time)."""
@@ -73,7 +73,7 @@ def predict_covariance(state, p0, scratch, F, Q):
             state[p0 + tri(i, j, n)] = acc
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def add_input_noise(state, p0, G, variance):
     """P += G variance G': the covariance a noisy input (variance ``variance``) adds through
     its input matrix column ``G`` (a tuple of n), e.g. a measured steer angle driving a model."""
@@ -133,7 +133,7 @@ def optional_row(ok, h1, h2, innovation, r):
     return 0.0, 0.0, 0.0, 1.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def joseph_update2(state, x0, p0, h11, h12, h21, h22, inn1, inn2, r1, r2):
     """One Kalman update of a 2-state filter with two measurements (x at ``x0``, packed P at
     ``p0``): H = [[h11, h12], [h21, h22]], R = diag(r1, r2), innovation [inn1, inn2].
@@ -189,7 +189,7 @@ def joseph_update2(state, x0, p0, h11, h12, h21, h22, inn1, inn2, r1, r2):
     return inn1 * (i11 * inn1 + i12 * inn2) + inn2 * (i21 * inn1 + i22 * inn2)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def gated_update(state, x0, p0, H, nu, r, gate):
     """Update of a 2-state filter with three measurements (R = r I) behind a Mahalanobis gate.
 
@@ -266,7 +266,7 @@ def gated_update(state, x0, p0, H, nu, r, gate):
 SPEED2_FLOOR = 1e-6
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def beta_variance(vx, vy, p_xx, p_xy, p_yy):
     """First-order propagation of the [vx, vy] covariance to beta = atan2(vy, vx):
     g = grad beta = [-vy, vx] / V^2 (V^2 floored at SPEED2_FLOOR), var = g P g'.
@@ -279,7 +279,7 @@ def beta_variance(vx, vy, p_xx, p_xy, p_yy):
     return g1, g2, g1 * g1 * p_xx + 2.0 * g1 * g2 * p_xy + g2 * g2 * p_yy
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def beta_sigma(vx, vy, p_xx, p_xy, p_yy, standstill_sigma):
     """1-sigma of beta (``beta_variance``); ``standstill_sigma`` where V^2 <= SPEED2_FLOOR
     and beta is not defined (each method says what it reports there)."""

@@ -17,7 +17,7 @@ from slipd.channels import G, Veh
 from slipd.numba_cache import nb
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def tanh_tyre(alpha, shape, peak, stiffness):
     """Lateral force F = peak tanh(shape alpha) and its slope dF/dalpha = stiffness (1 - tanh^2).
 
@@ -30,7 +30,7 @@ def tanh_tyre(alpha, shape, peak, stiffness):
     return peak * t, stiffness * (1.0 - t * t)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def magic_formula(alpha, b_factor, c_factor, e_factor, peak):
     """Chen eq. 5: Fy = D sin(C atan(B a - E (B a - atan(B a)))) with D = ``peak``; returns
     (Fy [N], dFy/dalpha [N/rad])."""
@@ -41,7 +41,7 @@ def magic_formula(alpha, b_factor, c_factor, e_factor, peak):
     return peak * math.sin(angle), peak * math.cos(angle) * c_factor / (1.0 + phi * phi) * dphi
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def brush_tyre(alpha, mu, fz, tyre_stiffness):
     """Lateral force of one tyre by the brush model (Yoon eq. 15) and its derivative in mu.
 
@@ -62,7 +62,7 @@ def brush_tyre(alpha, mu, fz, tyre_stiffness):
     return force, dforce_dmu
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def slip_angles(vx, vy, yaw_rate, steer, lf, lr):
     """Axle slip angles of the single-track model, alpha_F = delta - atan((vy + lf r) / vx),
     alpha_R = -atan((vy - lr r) / vx), and their derivatives in vy (those in r are lf and -lr
@@ -76,7 +76,7 @@ def slip_angles(vx, vy, yaw_rate, steer, lf, lr):
     return alpha_f, alpha_r, -inv_vx / (1.0 + tan_f * tan_f), -inv_vx / (1.0 + tan_r * tan_r)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def static_wheel_loads(vehicle):
     """Static load of one front and one rear wheel, N: (m g l_r / 2l, m g l_f / 2l)."""
     m = vehicle[Veh.MASS]
@@ -85,7 +85,7 @@ def static_wheel_loads(vehicle):
             0.5 * (vehicle[Veh.LF] / wheelbase) * m * G)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def wheel_loads(ax, ay, vehicle, floor_f, floor_r):
     """Vertical wheel loads with rigid-body load transfer from the CoG accelerations (Carnier
     eq. 20, Chen eq. 6): F_z = static share m g -+ m A_x h / 2l (accelerating moves load to the

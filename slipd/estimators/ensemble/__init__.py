@@ -265,7 +265,7 @@ def _member(state, u, params, vehicle, dt, m):
             _member_out(state, m))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def run_members(state, u, params, vehicle, dt):
     """Each member's ``step`` on its slices (static calls, in MEMBERS order: numba caches no
     kernel that calls a function it is handed)."""
@@ -278,7 +278,7 @@ def run_members(state, u, params, vehicle, dt):
     gnss_magnetometer.step(*_member(state, u, params, vehicle, dt, 6))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def member_usable(state, u, m):
     """True when member m's output of this tick may enter the fusion (see module docstring)."""
     row = F.MEMBER_OUT + m * N_OUT
@@ -303,7 +303,7 @@ _MONITOR_FAIL = int(consistency.Flag.FAIL)
 _NO_WITNESS = np.full(N_OUT, np.nan)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def monitor_members(state, u, params, vehicle, dt):
     """Each member's output of this tick through a consistency monitor of its own (the
     pipeline's, ``slipd.estimators.consistency``, with the d_ekf member's raw output as the
@@ -327,7 +327,7 @@ def monitor_members(state, u, params, vehicle, dt):
         state[F.CALIBRATED_SIGMA + m] = scratch[Out.SIGMA_BETA]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def mark_usable(state, u, entry_ticks, member_monitor):
     """Per member: USABLE = usable this tick (1/0), USABLE_TICKS its streak, FUSED = usable for
     at least ``entry_ticks`` ticks (the member enters the fusion). With ``member_monitor``, a
@@ -348,7 +348,7 @@ def mark_usable(state, u, entry_ticks, member_monitor):
         state[F.FUSED + m] = 1.0 if fused else 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _weighted_mean(state, channel):
     """sum w_i y_i / sum w_i over the members with w_i > 0 and a finite y_i (NaN if none)."""
     num = 0.0
@@ -362,7 +362,7 @@ def _weighted_mean(state, channel):
     return num / den if den > 0.0 else math.nan
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def fuse(state, floor, calibrated, out):
     """Eq. 38-39 with the P of ``error_covariance``; writes the weights and ``out``."""
     n, variance = error_covariance(state, floor, calibrated)
@@ -412,7 +412,7 @@ def fuse(state, floor, calibrated, out):
                   friction_class, status)  # fmt: skip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def step(state, u, params, vehicle, dt, out):
     """One tick: every member's step and consistency monitor, then the N-member
     minimum-variance fusion of beta."""
@@ -422,7 +422,7 @@ def step(state, u, params, vehicle, dt, out):
     fuse_tick(state, u, params, dt, out)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def fuse_tick(state, u, params, dt, out):
     """The fusion part of ``step`` on the member outputs already in ``state[F.MEMBER_OUT:]``."""
     decay = dt / params[FUSION_PARAMS.TIME_CONSTANT]
@@ -434,7 +434,7 @@ def fuse_tick(state, u, params, dt, out):
          params[FUSION_PARAMS.MONITOR_SIGMA] > 0.5, out)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

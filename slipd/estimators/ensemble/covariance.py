@@ -11,7 +11,7 @@ from slipd.estimators.ensemble.state import FAMILY, N_MEMBERS, F
 from slipd.numba_cache import nb
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def update_moments(state, decay):
     """D_ij, M_ij <- EWMA of (beta_i - beta_j)^2 and of 1 over the pairs usable this tick."""
     for i in range(N_MEMBERS):
@@ -31,7 +31,7 @@ def update_moments(state, decay):
             state[F.MASS + j * N_MEMBERS + i] = mass
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _moment(state, i, j):
     """The bias-corrected moment D_ij / M_ij."""
     ij = i * N_MEMBERS + j
@@ -39,7 +39,7 @@ def _moment(state, i, j):
     return state[F.MOMENT + ij] / mass if mass > 0.0 else 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def own_variance(state, m, calibrated):
     """Member m's own error variance: its sigma_beta squared, or with ``calibrated`` its
     consistency monitor's calibrated sigma (``monitor_members``: its own sigma together with
@@ -50,7 +50,7 @@ def own_variance(state, m, calibrated):
     return sigma * sigma if math.isfinite(sigma) and sigma > 0.0 else 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _fused(state, m):
     return state[F.FUSED + m] > 0.5
 
@@ -61,7 +61,7 @@ STRIDE = 2 * N_MEMBERS
 SINGULAR_PIVOT = 1e-12
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _solve_spd(state, n):
     """Solve A x = b in place for the SPD n x n system A at ``state[F.SYSTEM:]`` (row stride
     STRIDE) and b at ``state[F.RHS:]``, x replacing b: the system is first scaled to a unit
@@ -98,7 +98,7 @@ def _solve_spd(state, n):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _family_count(state, n, family):
     count = 0
     for p in range(n):
@@ -107,7 +107,7 @@ def _family_count(state, n, family):
     return count
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _add_pair(state, p, q, fp, fq, same, weight, value):
     """Add one pair's row a (U_p + U_q [+ C_fp + C_fq across families]) to the normal
     equations: A += weight a a', b += weight a value."""
@@ -230,7 +230,7 @@ def _minimum_variance_weights(state, n):
         state[F.WEIGHT + int(state[F.INDEX + p])] = x / total if x > 0.0 else 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def error_covariance(state, floor, calibrated):
     """P of the fused members (module docstring) and the weights of eq. 38 into
     ``state[F.WEIGHT:]``; P_ii into ``state[F.VARIANCE:]`` (NaN for members not fused), C_f

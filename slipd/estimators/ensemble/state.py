@@ -83,23 +83,23 @@ PERSISTENT = tuple(
 
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _member_state(state, m):
     return state[int(state[F.STATE_BOUNDS + m]) : int(state[F.STATE_BOUNDS + m + 1])]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _member_params(state, params, m):
     return params[int(state[F.PARAMS_BOUNDS + m]) : int(state[F.PARAMS_BOUNDS + m + 1])]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _member_monitor(state, m):
     start = F.MONITOR + m * MONITOR_SIZE
     return state[start : start + MONITOR_SIZE]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _member_out(state, m):
     start = F.MEMBER_OUT + m * N_OUT
     return state[start : start + N_OUT]

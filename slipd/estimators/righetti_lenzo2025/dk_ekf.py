@@ -50,7 +50,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     return rl.new_state(vehicle, "dk_ekf")
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def step(state, u, params, vehicle, dt, out):
     """One 100 Hz tick of the DK-EKF; writes every element of ``out``, allocates nothing."""
     p0_r = params[PARAMS.P0_R]
@@ -97,7 +97,7 @@ def step(state, u, params, vehicle, dt, out):
                           state[_KIN_P + 1], state[_KIN_P + 2], ax, ay, yaw_rate, params, status)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

@@ -146,7 +146,7 @@ HELD_SPEED_FLOOR = 0.1
 # ---------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def single_track(vy, r, vx, steer, vehicle):
     """The nonlinear single-track model (eq. 1, 2, 7) and its Jacobians.
 
@@ -184,7 +184,7 @@ def single_track(vy, r, vx, steer, vehicle):
     return vy_dot, r_dot, ay_model, j11, j12, j21, j22
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def dynamic_predict(state, vx, steer, vehicle, q_vy, q_r, dt):
     """A priori step of the dynamic EKF (eq. 8): x^- = x + f(x, u) dt, P^- = F P F' + Q_dyn
     (Q per step)."""
@@ -198,7 +198,7 @@ def dynamic_predict(state, vx, steer, vehicle, q_vy, q_r, dt):
                        (1.0 + j11 * dt, j12 * dt, j21 * dt, 1.0 + j22 * dt), (q_vy, q_r))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def dynamic_update(state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx, steer, vehicle, r_r, r_ay):
     """A posteriori step of the dynamic EKF with y = [r_meas, ay_meas] (eq. 9).
 
@@ -213,7 +213,7 @@ def dynamic_update(state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx, steer, vehicle, 
     return nis, int(yaw_rate_ok) + int(ay_ok)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def kinematic_predict(state, ax, ay, yaw_rate, q_vx, q_vy, dt):
     """A priori step of the kinematic KF (eq. 13): x^- = (I + F dt) x + G dt u (Q per step)."""
     vx = state[S.KIN_VX]
@@ -224,7 +224,7 @@ def kinematic_predict(state, ax, ay, yaw_rate, q_vx, q_vy, dt):
                        (q_vx, q_vy))  # fmt: skip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def kinematic_update(state, vx_meas, vx_ok, r_vx, vy_pseudo, vy_ok, r_vy):
     """A posteriori step of the kinematic KF, H = I (eq. 19) or H = [1 0] (eq. 14, vy_ok False).
     Returns the normalised innovation squared and the number of measurements used."""
@@ -252,7 +252,7 @@ def new_state(vehicle: np.ndarray, method: str) -> np.ndarray:
     return state
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def reset_state(state, vx, yaw_rate, steer, p0_vy, p0_r, p0_vx):
     """Start (or restart) both filters: vy = 0 (straight-running assumption), r = measured."""
     # a reset must not inherit a non-finite input fallback from the state it replaces

@@ -65,7 +65,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     return rl.new_state(vehicle, "k_kf")
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def step(state, u, params, vehicle, dt, out):
     """One 100 Hz tick of the K-KF; writes every element of ``out``, allocates nothing.
 
@@ -113,7 +113,7 @@ def step(state, u, params, vehicle, dt, out):
                           params, status)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])

@@ -198,7 +198,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     return state
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _reset(state, params):
     """Everything but the offsets (slow estimates that survive a reset of the observer)."""
     state[S.VX_HAT] = math.nan
@@ -449,7 +449,7 @@ def _propagate_quality(state, params, f_heuristic, yaw_rate, gain_x, have_vx, ay
 # ---------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def step(state, u, params, vehicle, dt, out):
     """One 100 Hz tick of the Selmanaj observer; see the module docstring.
 
@@ -546,7 +546,7 @@ def _write(state, params, out, status):
     )  # fmt: skip
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     """Batch loop: ``step`` on every row of ``U`` (n, U_LEN) into ``OUT`` (n, N_OUT)."""
     for k in range(U.shape[0]):

@@ -42,7 +42,7 @@ _MODE_MEDIAN = float(VxMode.MEDIAN)
 MIN_WEIGHT_SUM = 1e-9
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def wheel_weight(ax, wheel_accel, vx_prev, wheel_speed, sigma_w1, sigma_w2):
     """Reliability weight of one wheel, eq. 13 (bivariate Gaussian, Fig. 5):
     W = exp(-(Ax - dV_i/dt)^2 / (2 sigma_w1^2) - (vx_prev - V_i)^2 / (2 sigma_w2^2)).
@@ -55,7 +55,7 @@ def wheel_weight(ax, wheel_accel, vx_prev, wheel_speed, sigma_w1, sigma_w2):
     return math.exp(-exponent)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def _wheel_update(buf, slot, speed, valid, ax, vx_prev, dt, sigma_w1, sigma_w2):
     # The derivative filter only sees valid samples (an invalid one would be a step to 0).
     if not valid:

@@ -21,7 +21,7 @@ from slipd.estimators.common.tyres import brush_tyre, static_wheel_loads
 from slipd.numba_cache import nb
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def lateral_acceleration_model(mu, beta, yaw_rate, vx, steer, vehicle):
     """h(mu) of eq. 16: a_y = (2 f_yf cos(delta) + 2 f_yr) / m (eq. 13) and dh/dmu.
 
@@ -45,7 +45,7 @@ def lateral_acceleration_model(mu, beta, yaw_rate, vx, steer, vehicle):
     return ay, day_dmu
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def friction_update(state, i_mu, i_p, i_updates, scratch, beta, yaw_rate, vx, steer, ay, ay_ok,
                     vehicle, q_mu, r_ay, min_speed, min_sensitivity, gate, mu_min,
                     mu_max):  # fmt: skip

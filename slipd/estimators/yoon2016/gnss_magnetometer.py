@@ -194,7 +194,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     state[S.MU_P] = params[PARAMS.P0_MU]
     return state
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def state_is_finite(state):
     """True when the filters and the calibration are finite."""
     for i in range(FINITE_END):
@@ -322,7 +322,7 @@ def _write_held(out, vx, roll, params, status):
 # ---------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def step(state, u, params, vehicle, dt, out):
     """One 100 Hz tick of the three filters; writes every element of ``out``, allocates nothing."""
     tick = state[S.TICK]
@@ -430,13 +430,13 @@ def step(state, u, params, vehicle, dt, out):
     )  # fmt: skip
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(state, U, params, vehicle, dt, OUT):
     for k in range(U.shape[0]):
         step(state, U[k], params, vehicle, dt, OUT[k])
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks_diagnostic(state, U, params, vehicle, dt, OUT, DIAG):
     """``run_ticks`` that also records, per tick, DIAG[k] = (psi, phi, d^2 of the newest
     magnetometer sample, total rejected samples, mu, calibration samples[, pitch, accepted

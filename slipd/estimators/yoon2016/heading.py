@@ -40,7 +40,7 @@ from slipd.numba_cache import nb
 MIN_CALIBRATION_DET = 1e-9
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def magnetometer_model(cal, c0, psi, phi, pitch, inclination):
     """Predicted magnetometer reading (uT) at heading ``psi``, roll ``phi`` and pitch ``pitch``
     (eq. 5; the pitch is an input, not a state) and its Jacobian in (psi, phi).
@@ -82,7 +82,7 @@ def magnetometer_model(cal, c0, psi, phi, pitch, inclination):
     return m_x, m_y, m_z, dmx_dpsi, dmy_dpsi, dmz_dpsi, dmy_dphi, dmz_dphi
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def heading_from_magnetometer(cal, c0, m_x, m_y):
     """Heading (rad, from east, CCW) of a level body from the horizontal magnetometer axes.
 
@@ -102,13 +102,14 @@ def heading_from_magnetometer(cal, c0, m_x, m_y):
     return math.atan2(sin_psi, cos_psi)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def wrap_angle(angle):
-    """``angle`` wrapped into [-pi, pi)."""
+    """``angle`` wrapped into [-pi, pi) (inlined: the tests call it on arrays, which needs
+    numba's runtime, see slipd.numba_cache)."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def heading_predict(state, i_psi, i_p, yaw_rate, roll_rate, q_psi, q_phi, dt):
     """Time update of eq. 7 (F = I): psi += (r_m - b_r) dt, phi += (p_m - b_p) dt, P += Q.
 
@@ -121,7 +122,7 @@ def heading_predict(state, i_psi, i_p, yaw_rate, roll_rate, q_psi, q_phi, dt):
     state[i_p + 2] += q_phi
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def heading_update(state, i_psi, i_p, cal, c0, m_x, m_y, m_z, pitch, r_mag, inclination, gate):
     """Measurement update of the heading EKF with the three magnetometer axes (eq. 2, 6).
 
@@ -141,7 +142,7 @@ def heading_update(state, i_psi, i_p, cal, c0, m_x, m_y, m_z, pitch, r_mag, incl
     return d2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def heading_roll_update(state, i_psi, i_p, scratch, roll_measured, r_roll):
     """Scalar update of the heading EKF with a roll pseudo-measurement (H = [0, 1]; slipd).
 
@@ -157,7 +158,7 @@ def heading_roll_update(state, i_psi, i_p, scratch, roll_measured, r_roll):
 # ---------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def calibration_residual(state, c0, pc0, psi_ref, m_x, m_y, m_z, r_sample):
     """Normalised squared residual of a calibration sample against the current fit:
     sum_i (m_i - C_i z)^2 / (z' Pc z + r_sample), chi-square with 3 dof for a good sample."""
@@ -178,7 +179,7 @@ def calibration_residual(state, c0, pc0, psi_ref, m_x, m_y, m_z, r_sample):
     return total / spread
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def calibration_update(state, c0, pc0, psi_ref, m_x, m_y, m_z, r_cal, q_cal):
     """One recursive-least-squares step of m_level = C [cos psi, sin psi, 1]' (all three rows
     share the regressor, hence one 3 x 3 covariance ``state[pc0:pc0 + 9]``, row-major).
@@ -221,7 +222,7 @@ def calibration_update(state, c0, pc0, psi_ref, m_x, m_y, m_z, r_cal, q_cal):
     state[pc0 + 8] -= k2 * g2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def field_norm_error(state, c0, m_x, m_y, m_z, phi, pitch, inclination):
     """How far the measured field is from the earth field, uT: the larger of the errors of its
     horizontal norm and of its vertical component, both in the level frame.

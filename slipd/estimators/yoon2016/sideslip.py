@@ -35,7 +35,7 @@ from slipd.estimators.yoon2016.state import (
 from slipd.numba_cache import nb
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def kf4_predict(state, ix, ip, scratch, ax, ay_no_gravity, yaw_rate, q_v, q_b, dt):
     """Time update of eq. 9 by forward Euler: x += (A x + B u) dt, P = F P F' + Q, F = I + A dt.
 
@@ -57,7 +57,7 @@ def kf4_predict(state, ix, ip, scratch, ax, ay_no_gravity, yaw_rate, q_v, q_b, d
     predict_covariance(state, ip, scratch, F, (q_v, q_b, q_v, q_b))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def kf4_update_velocity(state, ix, ip, scratch, vx_meas, vy_meas, r_vx, r_vy):
     """Measurement update with y = [vx_GPS, vy_GPS] and H = [[1, 0, 0, 0], [0, 0, 1, 0]] (eq. 11),
     the two (independent) components one after the other: the batch update of eq. 2."""
@@ -65,13 +65,13 @@ def kf4_update_velocity(state, ix, ip, scratch, vx_meas, vy_meas, r_vx, r_vy):
     scalar_update(state, ix, ip, scratch, (0.0, 0.0, 1.0, 0.0), vy_meas - state[ix + 2], r_vy)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def entry(tick):
     """Offset of the history entry of tick ``tick`` (a ring of BUFFER_TICKS)."""
     return HISTORY + (int(tick) % BUFFER_TICKS) * ENTRY_LEN
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def gnss_to_body(v_north, v_east, v_up, psi, phi, yaw_rate, roll_rate, pitch_rate, antenna_x,
                  antenna_y, antenna_z):  # fmt: skip
     """Eq. 10 in east-north-up: the GNSS velocity in body axes at heading psi and roll phi,
@@ -87,7 +87,7 @@ def gnss_to_body(v_north, v_east, v_up, psi, phi, yaw_rate, roll_rate, pitch_rat
     return vx, vy
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def start_kf(state, vx, vy, p0_v, p0_b, tick):
     """(Re)start the sideslip KF at [vx, 0, vy, 0] with P0 (biases unknown, Sec. 3.3)."""
     state[S.KF_VX] = vx
@@ -107,7 +107,7 @@ def start_kf(state, vx, vy, p0_v, p0_b, tick):
     state[S.GNSS_UPDATES] = 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def save_entry(state, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate):
     """Store the tick's KF posterior, attitude and inputs in the history."""
     e = entry(tick)
@@ -126,7 +126,7 @@ def save_entry(state, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate):
     state[e + E.MAG_Z] = state[S.LAST_MAG_Z]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def fuse_delayed_gnss(state, tick, sample_tick, v_north, v_east, v_up, antenna_x, antenna_y,
                       antenna_z, q_v, q_b, r_gnss, dt):  # fmt: skip
     """Fuse a GNSS sample taken at ``sample_tick`` (<= ``tick``), Sec. 2.3.

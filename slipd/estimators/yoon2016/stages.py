@@ -56,7 +56,7 @@ def reset_calibration(state: np.ndarray, params: np.ndarray) -> None:
     state[CAL_PRIOR : CAL_PRIOR + 18] = state[CAL_C : CAL_C + 18]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def start_heading(state, psi, phi, params):
     state[S.HEAD_PSI] = psi
     state[S.HEAD_PHI] = phi
@@ -68,7 +68,7 @@ def start_heading(state, psi, phi, params):
     state[S.HISTORY_START_TICK] = state[S.TICK]  # the stored attitudes before are stale
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, _nrt=False)
 def calibration_sample(state, sample_tick, v_north, v_east, params):
     """Calibrate the magnetometer against a GNSS course when the car drove straight at the
     sampling tick (beta ~ 0, so the course is the heading; slipd, see the module docstring).
