@@ -47,3 +47,16 @@ def kbe_update(state, vx_meas, vx_ok, r_vx, r_vy0, straight):
     if straight > MIN_STRAIGHT_WEIGHT:
         scalar_update(state, _KBE_VX, KBE_P, SCRATCH_P, (0.0, 1.0), -state[S.KBE_VY],
                       r_vy0 / straight)  # fmt: skip
+
+
+@nb.njit(cache=True, _nrt=False)
+def kbe_leak(state, time_constant, dt):
+    """slipd's bound on the KBE's drift (``kbe_vy_leak_time_constant``; 0, the paper's open
+    integral, skips it): vy -= vy dt / tau after the update, k_kf's leak (its docstring gives
+    the argument: an unmodelled lateral acceleration b, a bank or a roll error, settles the open
+    integral at a vy error of b / r in a curve, the leak at b tau). Not modelled in the
+    covariance, so it is used only where the KBE's value is the output (pseudo_fusion_kbe), never
+    where the fusion weighs it by that covariance."""
+    if time_constant > 0.0:
+        state[S.KBE_VY] *= 1.0 - min(dt / time_constant, 1.0)
+

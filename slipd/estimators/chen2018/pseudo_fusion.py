@@ -8,7 +8,8 @@ eq. 26-39). Each module's docstring gives its equations and slipd's additions.
 
 ``params[PART]`` selects the output: 0 the fused estimate, 1 KBE, 2 DBE, 3 WBE alone (the
 registry's ``pseudo_fusion_kbe``, ``pseudo_fusion_dbe``, ``pseudo_fusion_wbe``); all four run
-the same kernel, so the parts are exactly the ones inside the fusion.
+the same kernel, so the parts are exactly the ones inside the fusion, but for the KBE's leak
+(``kbe_vy_leak_time_constant``, kbe.kbe_leak), which only ``pseudo_fusion_kbe`` sets.
 
 Sign convention. Chen's axes are x forward, y left (Fig. 1: "the right-to-left direction is
 positive"), which is ISO 8855, and eq. 4 is ISO-consistent with wheel 1 front-left at y = +b_f.
@@ -43,7 +44,7 @@ from slipd.channels import ST_DEGRADED, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_R
 from slipd.errors import ConfigError
 from slipd.estimators.chen2018.dbe import dbe_predict, dbe_update, vertical_loads
 from slipd.estimators.chen2018.fusion import fuse, own_covariances, update_difference_moments
-from slipd.estimators.chen2018.kbe import kbe_predict, kbe_update
+from slipd.estimators.chen2018.kbe import kbe_leak, kbe_predict, kbe_update
 from slipd.estimators.chen2018.state import (
     D12,
     D13,
@@ -127,6 +128,7 @@ class PARAMS(enum.IntEnum):
     ACCEL_LOWPASS_HZ = 28  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
     WBE_SPEED_SHIFT = 29  # 1 = the WBE's rows follow the rear axle's speed (slipd), 0 = xi
     #                       constant over the forgetting memory (the paper)
+    KBE_VY_LEAK_TIME_CONSTANT = 30  # s, the KBE's vy decays to 0 (slipd); 0 = none (the paper)
 
 
 #: Defaults. The paper publishes no filter tuning (only the vehicle of Table 1, which slipd takes
@@ -169,6 +171,10 @@ DEFAULTS = {
     # 4.62 to 2.50 deg on the real run (race track, |ax| to 10 m/s^2; its wheel speeds there are
     # derived with beta = 0) and 0.78 -> 0.43 on the simulator's endurance drive, both seeds
     "wbe_speed_shift": 1.0,
+    # 0 inside the fusion: its weights come from the KBE's covariance, which does not model a
+    # leak; the registry's pseudo_fusion_kbe (the KBE alone, its output the open integral)
+    # sets 2 s, k_kf's bound (kbe.kbe_leak)
+    "kbe_vy_leak_time_constant": 0.0,
 }
 
 #: |beta| beyond which the output is clamped and flagged (the 45 deg of the models' domain)
@@ -209,6 +215,8 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
             raise ConfigError(f"pseudo_fusion: {field.name.lower()} must be > 0")
     if not (params[PARAMS.FORGETTING] <= 1.0 and params[PARAMS.RIDGE] > 0.0):
         raise ConfigError("pseudo_fusion: forgetting must be in (0, 1] and ridge > 0")
+    if not params[PARAMS.KBE_VY_LEAK_TIME_CONSTANT] >= 0.0:
+        raise ConfigError("pseudo_fusion: kbe_vy_leak_time_constant must be >= 0 (0: none)")
     return new_state()
 
 
@@ -355,6 +363,7 @@ def _update_and_fuse(state, params, vehicle, u, steer, fx, fz, ax, ax_ok, ay, ay
         yaw_rate, params[PARAMS.STRAIGHT_SIGMA_YAW_RATE], ay, params[PARAMS.STRAIGHT_SIGMA_AY]
     )
     kbe_update(state, vx_meas, vx_ok, params[PARAMS.R_VX_KBE], params[PARAMS.R_VY0_KBE], straight)
+    kbe_leak(state, params[PARAMS.KBE_VY_LEAK_TIME_CONSTANT], dt)
     dbe_update(
         state, steer, fx, fz, vehicle, ax, ax_ok, params[PARAMS.R_AX_DBE], ay, ay_ok,
         params[PARAMS.R_AY_DBE], vx_meas, vx_ok, params[PARAMS.R_VX_DBE],

@@ -23,9 +23,10 @@ there the kinematics beat any model; over longer, b dominates. Measured on every
 ``benchmarks.accuracy`` (beta RMS without snow_drift, simulator blocks / real run, deg; the
 paper's 0: 1.9-6.3 / 1.12): 1.5 s 0.9-1.5 / 0.94, 2 s 1.0-1.7 / 0.83, 3 s 1.1-2.2 / 0.72; on
 the endurance drive 1 s 1.30, 10 s 3.67, and the real run 1 s 1.11, 10 s 0.80. The KBE of
-pseudo_fusion (Chen's kinematic part with slipd's straight-running pseudo-measurement) has no
-such leak: one moved pseudo_fusion_kbe from 5.5 to 1.8 deg on the endurance-heavy suite and
-from 1.73 to 1.07 on the real run, but the fusion from 0.58 to 0.71 on the real run.
+pseudo_fusion (Chen's kinematic part with slipd's straight-running pseudo-measurement) has the
+same leak where it is the output (``pseudo_fusion_kbe``: 5.1 -> 1.8 deg on the suite, 1.73 ->
+1.07 on the real run) and none inside the fusion, which weighs it by its covariance (there the
+leak moved the fusion's real run from 0.58 to 0.71).
 
 Parameters: Q_K, R_K of eq. 30 and the 0.01 rad/s threshold of Sec. 4; initial covariance,
 speed floor, variance cap, the leak, yaw-acceleration filter, convergence rule and the
