@@ -59,4 +59,3 @@ def kbe_leak(state, time_constant, dt):
     where the fusion weighs it by that covariance."""
     if time_constant > 0.0:
         state[S.KBE_VY] *= 1.0 - min(dt / time_constant, 1.0)
-
