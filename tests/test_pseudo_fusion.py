@@ -552,7 +552,7 @@ def test_parts_alone_equal_the_parts_inside_the_fusion(vehicle):
 @pytest.mark.parametrize("leak", [0.0, 2.0])
 def test_the_kbe_leak_bounds_the_drift_of_the_kbe_alone(vehicle, leak):
     """On the banked road the KBE's open integral in the curves takes the bank's g sin(bank)
-    as lateral acceleration (kbe.kbe_leak's docstring): with the paper's open integral (0)
+    as lateral acceleration (common.filters.leak's docstring): with the paper's open integral (0)
     pseudo_fusion_kbe was 4.63 deg RMS (14.5 deg at worst), with its registry's 2 s leak 1.93
     (4.6)."""
     errors = sim_run("pseudo_fusion_kbe", "banked_road", vehicle,

@@ -10,8 +10,10 @@ is run as a Kalman filter whose vx is corrected by the wheel-based speed (R ``r_
 whose vy is pulled to 0 by a pseudo-measurement only while the car runs straight:
 R = ``r_vy0_kbe`` / F with F = exp(-(r^2 / s_r^2 + ay^2 / s_ay^2) / 2) the Gaussian
 straight-running heuristic of Selmanaj et al. 2017 (eq. 5-6). In a corner F ~ 0 and the
-integral runs open, as in the paper. Its covariance (random-walk process noise ``q_vx_kbe``,
-``q_vy_kbe``, per second) is the KBE's own error covariance for the fusion.
+integral runs open, as in the paper (where the KBE alone is the output, ``pseudo_fusion_kbe``,
+vy also leaks to 0 with k_kf's 2 s: pseudo_fusion's ``kbe_vy_leak_time_constant``). Its
+covariance (random-walk process noise ``q_vx_kbe``, ``q_vy_kbe``, per second) is the KBE's own
+error covariance for the fusion.
 """
 
 from __future__ import annotations
@@ -47,15 +49,3 @@ def kbe_update(state, vx_meas, vx_ok, r_vx, r_vy0, straight):
     if straight > MIN_STRAIGHT_WEIGHT:
         scalar_update(state, _KBE_VX, KBE_P, SCRATCH_P, (0.0, 1.0), -state[S.KBE_VY],
                       r_vy0 / straight)  # fmt: skip
-
-
-@nb.njit(cache=True, _nrt=False)
-def kbe_leak(state, time_constant, dt):
-    """slipd's bound on the KBE's drift (``kbe_vy_leak_time_constant``; 0, the paper's open
-    integral, skips it): vy -= vy dt / tau after the update, k_kf's leak (its docstring gives
-    the argument: an unmodelled lateral acceleration b, a bank or a roll error, settles the open
-    integral at a vy error of b / r in a curve, the leak at b tau). Not modelled in the
-    covariance, so it is used only where the KBE's value is the output (pseudo_fusion_kbe), never
-    where the fusion weighs it by that covariance."""
-    if time_constant > 0.0:
-        state[S.KBE_VY] *= 1.0 - min(dt / time_constant, 1.0)

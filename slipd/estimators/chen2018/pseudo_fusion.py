@@ -9,7 +9,7 @@ eq. 26-39). Each module's docstring gives its equations and slipd's additions.
 ``params[PART]`` selects the output: 0 the fused estimate, 1 KBE, 2 DBE, 3 WBE alone (the
 registry's ``pseudo_fusion_kbe``, ``pseudo_fusion_dbe``, ``pseudo_fusion_wbe``); all four run
 the same kernel, so the parts are exactly the ones inside the fusion, but for the KBE's leak
-(``kbe_vy_leak_time_constant``, kbe.kbe_leak), which only ``pseudo_fusion_kbe`` sets.
+(``kbe_vy_leak_time_constant``, k_kf's bound), which only ``pseudo_fusion_kbe`` sets.
 
 Sign convention. Chen's axes are x forward, y left (Fig. 1: "the right-to-left direction is
 positive"), which is ISO 8855, and eq. 4 is ISO-consistent with wheel 1 front-left at y = +b_f.
@@ -44,7 +44,7 @@ from slipd.channels import ST_DEGRADED, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_R
 from slipd.errors import ConfigError
 from slipd.estimators.chen2018.dbe import dbe_predict, dbe_update, vertical_loads
 from slipd.estimators.chen2018.fusion import fuse, own_covariances, update_difference_moments
-from slipd.estimators.chen2018.kbe import kbe_leak, kbe_predict, kbe_update
+from slipd.estimators.chen2018.kbe import kbe_predict, kbe_update
 from slipd.estimators.chen2018.state import (
     D12,
     D13,
@@ -65,7 +65,7 @@ from slipd.estimators.chen2018.state import (
     S,
 )
 from slipd.estimators.chen2018.wbe import wbe_shift, wbe_update
-from slipd.estimators.common.filters import DERIVATIVE_CUTOFF_HZ, gaussian_bell
+from slipd.estimators.common.filters import DERIVATIVE_CUTOFF_HZ, gaussian_bell, leak
 from slipd.estimators.common.inputs import (
     corner_speed_mean,
     hold_last,
@@ -173,7 +173,7 @@ DEFAULTS = {
     "wbe_speed_shift": 1.0,
     # 0 inside the fusion: its weights come from the KBE's covariance, which does not model a
     # leak; the registry's pseudo_fusion_kbe (the KBE alone, its output the open integral)
-    # sets 2 s, k_kf's bound (kbe.kbe_leak)
+    # sets 2 s, k_kf's bound (common.filters.leak)
     "kbe_vy_leak_time_constant": 0.0,
 }
 
@@ -363,7 +363,7 @@ def _update_and_fuse(state, params, vehicle, u, steer, fx, fz, ax, ax_ok, ay, ay
         yaw_rate, params[PARAMS.STRAIGHT_SIGMA_YAW_RATE], ay, params[PARAMS.STRAIGHT_SIGMA_AY]
     )
     kbe_update(state, vx_meas, vx_ok, params[PARAMS.R_VX_KBE], params[PARAMS.R_VY0_KBE], straight)
-    kbe_leak(state, params[PARAMS.KBE_VY_LEAK_TIME_CONSTANT], dt)
+    leak(state, S.KBE_VY, dt, params[PARAMS.KBE_VY_LEAK_TIME_CONSTANT])  # slipd: DEFAULTS
     dbe_update(
         state, steer, fx, fz, vehicle, ax, ax_ok, params[PARAMS.R_AX_DBE], ay, ay_ok,
         params[PARAMS.R_AY_DBE], vx_meas, vx_ok, params[PARAMS.R_VX_DBE],

@@ -59,6 +59,17 @@ def derivative_filter(buf, i, signal, dt, cutoff_hz):
 
 
 @nb.njit(cache=True, inline="always")
+def leak(buf, i, dt, time_constant):
+    """``buf[i]`` decays toward 0 with ``time_constant`` (x -= x dt / tau, the step clipped at
+    one time constant); 0 means no leak. slipd's bound on an open kinematic integral of ay
+    (k_kf's ``vy_leak_time_constant``, pseudo_fusion's ``kbe_vy_leak_time_constant``; k_kf's
+    docstring gives the argument: an unmodelled lateral acceleration b settles the integral
+    at b / r in a curve, the leak at b tau)."""
+    if time_constant > 0.0:
+        buf[i] *= 1.0 - min(dt / time_constant, 1.0)
+
+
+@nb.njit(cache=True, inline="always")
 def gaussian_bell(a, sigma_a, b, sigma_b):
     """exp(-(a^2 / sigma_a^2 + b^2 / sigma_b^2) / 2): Selmanaj eq. 5-7's bivariate Gaussian, 1 at
     (0, 0), -> 0 when either argument grows (also Chen's straight-running weight)."""

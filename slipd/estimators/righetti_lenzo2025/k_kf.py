@@ -39,6 +39,7 @@ import math
 
 import numpy as np
 
+from slipd.estimators.common.filters import leak
 from slipd.estimators.common.kalman import per_step
 from slipd.estimators.righetti_lenzo2025 import filters as rl
 from slipd.estimators.righetti_lenzo2025.filters import S
@@ -93,10 +94,8 @@ def step(state, u, params, vehicle, dt, out):
     rl.record_innovations(state, nis, dof, params, dt)
     if abs(yaw_rate) < params[PARAMS.ZERO_VY_YAW_RATE]:
         state[S.KIN_VY] = 0.0  # Sec. 4: vy := 0 on straights against the drift
-    leak = params[PARAMS.VY_LEAK_TIME_CONSTANT]
-    if leak > 0.0:
-        # slipd: the bound on the open integral in a curve (module docstring)
-        state[S.KIN_VY] *= 1.0 - min(dt / leak, 1.0)
+    # slipd: the bound on the open integral in a curve (module docstring)
+    leak(state, S.KIN_VY, dt, params[PARAMS.VY_LEAK_TIME_CONSTANT])
     p_yy = state[_KIN_P + 2]
     p_vy_max = params[PARAMS.P_VY_MAX]
     if p_yy > p_vy_max:
