@@ -29,11 +29,8 @@ import numpy as np
 
 from slipd.channels import N_OUT
 from slipd.estimators import consistency, registry
+from slipd.estimators.consistency import WITNESS, WITNESS_OF_WITNESS
 from slipd.estimators.supervision import supervise, supervise_ticks, supervision_plan
-
-#: The dynamic witness of the consistency monitor, and the one of that method itself.
-WITNESS = "d_ekf"
-WITNESS_OF_WITNESS = "linear_kf"
 
 #: The tick interval, s (100 Hz).
 TICK_DT = 0.01

@@ -147,6 +147,13 @@ PARAMS, DEFAULTS = build_params(
 )  # fmt: skip
 
 
+#: The dynamic witness: the method whose raw output the monitor checks every other method
+#: against (slipd.pipeline runs it beside each method; inside the ensemble it is that member),
+#: and the witness of that method itself.
+WITNESS = "d_ekf"
+WITNESS_OF_WITNESS = "linear_kf"
+
+
 @enum.unique
 class Flag(enum.IntEnum):
     """Bits of LAST_FLAGS: what the monitor found this tick."""
@@ -403,4 +410,5 @@ def default_params(witness_linear: bool = False) -> np.ndarray:
 
 
 __all__ = ["DEFAULTS", "Flag", "LAYOUT", "PARAMS", "default_params", "monitor",
-           "innovation_ratio", "monitor_ticks", "new_state", "witness_sigma"]
+           "innovation_ratio", "monitor_ticks", "new_state", "witness_sigma", "WITNESS",
+           "WITNESS_OF_WITNESS"]

@@ -35,8 +35,8 @@ FAMILY = tuple(_FAMILIES.index(spec.family) for spec in _SPECS)
 #: A member's status bits that take it out of the fusion this tick.
 EXCLUDING = ST_UNAVAILABLE | ST_INPUT_TIMEOUT | ST_NOT_CONVERGED | ST_RESET
 #: The member whose raw output is the dynamic witness of the others' consistency monitors
-#: (slipd.pipeline.WITNESS); it has none of its own inside the ensemble.
-WITNESS_MEMBER = MEMBERS.index("d_ekf")
+#: (consistency.WITNESS, as in the pipeline); it has none of its own inside the ensemble.
+WITNESS_MEMBER = MEMBERS.index(consistency.WITNESS)
 #: Slots of one member's consistency monitor.
 MONITOR_SIZE = consistency.LAYOUT.size
 
