@@ -289,12 +289,20 @@ def test_a_forked_child_steps_its_methods_on_threads_of_its_own(codec_drives, pr
             assert np.array_equal(a[m], b[m], equal_nan=True)
 
 
-def test_methods_run_on_threads_only_with_two_raw_runs(profile, monkeypatch):
+def test_methods_run_on_threads_only_where_the_pool_has_cores_to_use(profile, monkeypatch):
+    """On 2 cores the other stages take one: a method and its witness (two raw runs) stay in
+    the estimate thread, three or more (here 3: two methods and the shared witness) go to the
+    pool; with more cores any two do; with one thread none."""
     monkeypatch.setenv(THREADS_VARIABLE, "2")
-    assert MethodRuns(profile, ["kinematic_heuristic"]).parallel  # itself and its witness
+    assert not MethodRuns(profile, ["kinematic_heuristic"]).parallel  # itself and its witness
+    assert MethodRuns(profile, ["kinematic_heuristic"], parallel=True).parallel
+    assert MethodRuns(profile, ["kinematic_heuristic", "k_kf"]).parallel
     assert not MethodRuns(profile, ["linear_kf"], parallel=False).parallel
+    monkeypatch.setenv(THREADS_VARIABLE, "4")
+    assert MethodRuns(profile, ["kinematic_heuristic"]).parallel
     monkeypatch.setenv(THREADS_VARIABLE, "1")
     assert not MethodRuns(profile, ["kinematic_heuristic", "k_kf"]).parallel
+    assert not MethodRuns(profile, ["kinematic_heuristic"], parallel=True).parallel
 
 
 def load(name):

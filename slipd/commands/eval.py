@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="score one log per task on dask.distributed (a local cluster of "
                              "N workers, or a running scheduler)")
     parser.add_argument("--chunk-mb", type=float, default=None, metavar="MB",
-                        help="log text decoded per chunk (default 4)")
+                        help="log text decoded per chunk (default 2)")
 
 
 def _methods(spec: str) -> list[str]:

@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="with --dask: skip the logs whose partition in --out DIR holds "
                             "this run of them already")
     parser.add_argument("--chunk-mb", type=float, default=None, metavar="MB",
-                        help="log text decoded per chunk (default 4): replay memory is "
+                        help="log text decoded per chunk (default 2): replay memory is "
                              "bounded by the chunk, not the log")
     player = parser.add_argument_group("real-time player")
     player.add_argument("--realtime", action="store_true",

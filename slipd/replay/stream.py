@@ -67,11 +67,13 @@ from slipd.replay.engine import (
     recorded_ticks,
 )
 
-#: Log text per chunk: ~90,000 frames of a candump log, ~2 minutes of the default profile's
+#: Log text per chunk: ~45,000 frames of a candump log, ~1 minute of the default profile's
 #: bus. Measured on the endurance drive with every method and --out x.parquet (benchmarks/
 #: fleet.py): a 16 MB chunk peaked at ~640 MB RSS, 4 MB at ~440 MB (of which ~290 MB are the
-#: loaded kernels), at the same speed.
-CHUNK_BYTES = 4 << 20
+#: loaded kernels), at the same speed. 2 MB: a 10-minute log's stages overlap on more chunks
+#: (its replay 5-10 % faster on 2 cores than with 4 MB, the 1 h log's as fast or faster:
+#: benchmarks/replay.py); 1 MB chunks were slower again.
+CHUNK_BYTES = 2 << 20
 #: Threads parsing a candump log's blocks at once (line blocks are independent; the parse
 #: kernel releases the GIL): two, measured on 2 cores, and never more than the replay's
 #: threads (slipd.replay.ahead.replay_threads).
@@ -500,7 +502,8 @@ class MethodRuns:
         #: raw runs more than one method needs (the witness): each made once per chunk
         self.shared = RawRuns.shared_keys(self.pipelines.values())
         self.threads = replay_threads()
-        wanted = sum(1 for _ in self._jobs()) > 1 if parallel is None else parallel
+        jobs = sum(1 for _ in self._jobs())
+        wanted = pool_pays(jobs, self.threads) if parallel is None else parallel
         self.parallel = wanted and self.threads > 1
 
     def run(self, inputs: Inputs) -> dict[str, np.ndarray]:
@@ -537,6 +540,18 @@ class MethodRuns:
         for key, out, state in _method_pool(self.threads).map(run, list(self._jobs())):
             raw.runs[key] = (out, state)
         return raw
+
+
+def pool_pays(jobs: int, threads: int) -> bool:
+    """Whether a chunk's ``jobs`` raw runs go to the method pool of ``threads`` threads. The
+    streaming replay's other stages (parse, decode and latch, write) keep about a core busy
+    on their own threads, so the pool only pays where it has cores of its own (more than
+    two) or where the raw runs outnumber the cores (``--estimator all``: estimation is then
+    most of the work). Measured on 2 cores (benchmarks/replay.py, 10-minute log, one method
+    and its witness): the pool made the replay 5-8 % slower (the two jobs took the core the
+    other stages needed, and the threads' hand-offs cost CPU); with ``all`` it is what keeps
+    both cores estimating."""
+    return jobs > 1 and (threads > 2 or jobs > threads)
 
 
 _POOL: tuple[int, ThreadPoolExecutor] | None = None

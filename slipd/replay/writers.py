@@ -18,8 +18,9 @@ write give the same bytes (tests/test_stream.py).
 * ``.csv``: plain (one header row, ``pandas.read_csv`` with defaults reads it), the table of
   :data:`TABLE_COLUMNS` in degrees as ``slipd replay`` always wrote; what it is (units, status
   bits, source, profile) goes to ``FILE.csv.meta.json``.
-* ``.parquet``: the same table (zstd), each field's unit in its field metadata and the run's
-  description in the schema metadata (``b"slipd"``, JSON).
+* ``.parquet``: the same table (snappy; the float columns byte-stream-split), each field's
+  unit in its field metadata and the run's description in the schema metadata
+  (``b"slipd"``, JSON).
 * ``.mcap`` (Foxglove, ``mcap`` package): JSON messages with a JSON schema (units in each
   property's description): ``/slipd/inputs`` (the latched input channels and their validity
   per tick), ``/slipd/estimate/<method>`` (the Python API's SI columns) and ``/slipd/truth``
@@ -48,6 +49,17 @@ from slipd.replay import textformat
 DEG = 180.0 / math.pi
 #: rows of a Parquet row group (22 minutes of one method's ticks, ~10 MB in memory)
 ROW_GROUP_TICKS = 1 << 17
+#: How the Parquet table is encoded. Measured on a 10-minute replay's 60,000 rows
+#: (benchmarks/replay.py writes them at the end of the run, on its critical path):
+#: zstd with PLAIN floats (until stop 35) 6.0-6.4 ms and 2.89 MB; byte-stream-split floats
+#: (their bytes grouped by significance, which compresses: the exponent bytes repeat)
+#: with zstd 4.5 ms / 2.34 MB, with lz4 2.4 ms / 2.38 MB, with snappy 2.0 ms / 2.52 MB; no
+#: compression 1.4 ms / 3.85 MB. Snappy is the codec every Parquet reader has; the batch
+#: size is pyarrow's values per encoding call (1024 by default: ~4x slower uncompressed).
+#: Dictionary pages only for the estimator name: on the float columns (every value distinct)
+#: pyarrow's default builds a dictionary per column and gives it up.
+PARQUET_COMPRESSION = "snappy"
+PARQUET_WRITE_BATCH = 1 << 16
 #: Arrow bytes of the later methods' rows a Parquet writer holds in memory before it spills
 #: them to files: a short log (a fleet's minutes-long drives) never touches a spill (writing
 #: and reading back the spills was ~120 ms of a ~0.75 s log with every method), a long one
@@ -217,6 +229,17 @@ def _table_values(t: np.ndarray, out: np.ndarray) -> dict[str, np.ndarray]:
     return columns
 
 
+def parquet_options(schema) -> dict:
+    """pyarrow.parquet.ParquetWriter's options for a table of ``schema`` (PARQUET_COMPRESSION:
+    floats byte-stream-split, a dictionary only for the estimator name)."""
+    import pyarrow as pa
+
+    floats = [f.name for f in schema if pa.types.is_floating(f.type)]
+    return {"compression": PARQUET_COMPRESSION, "use_dictionary": ["estimator"],
+            "column_encoding": dict.fromkeys(floats, "BYTE_STREAM_SPLIT"),
+            "write_batch_size": PARQUET_WRITE_BATCH}
+
+
 def _open(path: Path, mode: str):
     try:
         return open(path, mode, **({} if "b" in mode else {"encoding": "utf-8"}))
@@ -279,8 +302,8 @@ def sidecar_of(path: Path) -> Path:
 
 
 class ParquetWriter(EstimateWriter):
-    """Parquet (zstd) by row groups of ROW_GROUP_TICKS rows: units in the field metadata, the
-    run in the schema's."""
+    """Parquet (:func:`parquet_options`) by row groups of ROW_GROUP_TICKS rows: units in the
+    field metadata, the run in the schema's."""
 
     def __init__(self, path: Path, info: RunInfo):
         super().__init__(path, info)
@@ -299,11 +322,8 @@ class ParquetWriter(EstimateWriter):
         self.schema = pa.schema(fields, metadata={"slipd": json.dumps(info.as_dict())})
         self._dictionary = pa.array(list(info.methods), type=pa.string())
         try:
-            # Dictionary pages only for the estimator name: on the float columns (every
-            # value distinct) pyarrow's default builds a dictionary per column and gives it
-            # up, which was 2/3 of the writer's time (benchmarks/replay.py) for a larger file.
-            self._writer = pq.ParquetWriter(str(self.partial), self.schema, compression="zstd",
-                                            use_dictionary=["estimator"])
+            self._writer = pq.ParquetWriter(str(self.partial), self.schema,
+                                            **parquet_options(self.schema))
         except OSError as exc:
             raise ConfigError(f"--out {path}: cannot write: {exc}") from exc
         self._order = _MethodOrder(self.path, ".arrows")
