@@ -383,3 +383,28 @@ def test_word_extraction_equals_the_byte_loop(start, length, big_endian, payload
     if position + length <= 56:
         le, be = (np.uint64(w) for w in kernels._payload_words(short))
         assert kernels._raw_words(plan_i, 0, short, le, be) == kernels._raw(plan_i, 0, short)
+
+
+def test_an_output_plan_is_compiled_once_per_layout_and_dbc_version(tmp_path):
+    """compile_output_plan is memoised on the DBC file's version and the output layout: the
+    same layout gets the same plan, another ID, bus or format its own, an edited DBC a new
+    one."""
+    import os
+    import shutil
+
+    from slipd.codec.plan import SLIPD_DBC
+    from slipd.profile import OutputMap
+
+    nominal = compile_output_plan(outputs=OutputMap())
+    assert compile_output_plan(outputs=OutputMap()) is nominal
+    moved = compile_output_plan(outputs=OutputMap(frame_ids={"SLIPD_STATE": 0x6F0}))
+    assert moved is not nominal and moved.frame_id("SLIPD_STATE") == 0x6F0
+    assert nominal.frame_id("SLIPD_STATE") != 0x6F0
+    assert compile_output_plan(outputs=OutputMap(bus="chassis")).buses == ("chassis",)
+    assert compile_output_plan(outputs=OutputMap(extended=True)).is_extended("SLIPD_STATE")
+    copy = tmp_path / "slipd.dbc"
+    shutil.copy(SLIPD_DBC, copy)
+    first = compile_output_plan(copy)
+    stat = copy.stat()
+    os.utime(copy, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))
+    assert compile_output_plan(copy) is not first
