@@ -473,3 +473,35 @@ def test_an_aborted_table_leaves_neither_the_file_nor_its_spills(tmp_path, monke
     assert len(list(tmp_path.iterdir())) == 3  # the partial table and two spills
     writer.abort()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_replay_command_keeps_freed_chunk_memory_for_the_next_chunk(codec_drives, tmp_path,
+                                                                       monkeypatch):
+    """``slipd replay`` sets glibc's trim and mmap thresholds once (stream.keep_freed_memory)
+    so a chunk reuses the pages the one before freed; where there is no glibc it says so."""
+    import ctypes
+    import platform
+
+    from slipd.replay import stream
+
+    monkeypatch.setattr(stream, "_KEPT", False)
+    calls = []
+    real = ctypes.CDLL
+
+    class Recording:
+        def __init__(self, name):
+            self._libc = real(name)
+
+        def mallopt(self, option, value):
+            calls.append((option, value))
+            return self._libc.mallopt(option, value)
+
+    if platform.libc_ver()[0] != "glibc":
+        assert stream.keep_freed_memory() is False
+        return
+    monkeypatch.setattr(ctypes, "CDLL", Recording)
+    log = codec_drives["mu_jump"].log
+    assert main(["replay", str(log), "--estimator", "zero", "--out",
+                 str(tmp_path / "x.csv")]) == 0
+    assert sorted(calls) == [(-3, stream.MMAP_THRESHOLD_BYTES), (-1, stream.TRIM_THRESHOLD_BYTES)]
+    assert stream.keep_freed_memory() is True and len(calls) == 2  # once per process

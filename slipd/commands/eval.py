@@ -83,7 +83,9 @@ def run(args: argparse.Namespace) -> int:
     if not math.isfinite(args.min_speed) or args.min_speed < 0:
         raise ConfigError(f"--min-speed {args.min_speed}: expected a speed >= 0 km/h")
     from slipd.commands.replay import _chunk_bytes
+    from slipd.replay.stream import keep_freed_memory
 
+    keep_freed_memory()
     logs = _logs(args)
     single_plot = args.plot is not None and len(logs) == 1 and args.suite is None and not cases
     with contextlib.ExitStack() as stack:

@@ -80,8 +80,9 @@ def replay_one(log: Path, profile_name: str, methods: list[str], out: Path | Non
     from slipd.estimators import registry
     from slipd.profile import load_profile
     from slipd.replay.ahead import ahead
-    from slipd.replay.stream import CHUNK_BYTES, LogStream
+    from slipd.replay.stream import CHUNK_BYTES, LogStream, keep_freed_memory
 
+    keep_freed_memory()
     started = time.perf_counter()
     profile = load_profile(profile_name)
     for name in methods:
