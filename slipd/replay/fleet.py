@@ -334,10 +334,9 @@ def _replay_into(job: LogJob, record: LogRecord, started: float, cpu_started: fl
 
     from slipd.channels import Out, Status
     from slipd.profile import load_profile
-    from slipd.replay.stream import CHUNK_BYTES, LogStream, keep_freed_memory
+    from slipd.replay.stream import CHUNK_BYTES, LogStream
     from slipd.replay.writers import ParquetWriter, RunInfo
 
-    keep_freed_memory()
     profile, record.profile_sha256, pipelines = _loaded(job.profile, load_profile)
     record.profile_name = profile.name
     if job.profile_sha256 and record.profile_sha256 != job.profile_sha256:
