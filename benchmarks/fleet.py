@@ -220,9 +220,13 @@ def simulated_logs(folder: Path, count: int) -> list[Path]:
 
 
 def sequential_fleet(out: str, methods: str, *logs: str) -> None:
-    """The --dask run's tasks one after another in this process (run_fleet, no client)."""
+    """The --dask run's tasks one after another in this process (run_fleet, no client), with
+    the allocator setting of the local cluster's workers."""
     from slipd.estimators.registry import parse_names
     from slipd.replay.fleet import run_fleet
+    from slipd.replay.stream import keep_freed_memory
+
+    keep_freed_memory()
 
     records = run_fleet([Path(p) for p in logs], "default", parse_names(methods), Path(out))
     failed = [r for r in records if r.status != "ok"]

@@ -99,9 +99,10 @@ def keep_freed_memory() -> bool:
     runs each): 47-50 ms by default, 41-44 ms with both settings; the trim threshold alone
     was slower (58-63 ms: it also fixes the mmap threshold at 128 KB), the mmap threshold
     alone no faster. The cost: up to TRIM_THRESHOLD_BYTES freed memory stays in the process
-    (a replay's peak is the peak either way). Called by the replay and eval commands, not by
-    the library nor in a Dask worker (a process-wide setting is its program's to make; dask
-    sets its workers' allocator on purpose, slipd.replay.fleet.LOCAL_WORKER_UNSET_ENVIRON)."""
+    (a replay's peak is the peak either way). Called by the replay and eval commands and in
+    the workers of a ``--dask local`` cluster (slipd.replay.dask_forkserver), not by the
+    library nor in the workers of a user's cluster: a process-wide setting is its program's
+    to make."""
     global _KEPT
     if _KEPT:
         return True
