@@ -78,6 +78,9 @@ LOCAL_WORKER_CONFIG = {
 #: fresh mmaps, zero-filled page by page: measured on the endurance drive with every method, one
 #: replay thread, 9.54-9.56 s (1.12 s system) with it against 9.12-9.18 s (0.55-0.64 s system)
 #: without. A replay's memory is bounded by its chunk and a local cluster lives for one run.
+#: The workers forked from the forkserver then take slipd's own thresholds from it
+#: (stream.keep_freed_memory, set in slipd.replay.dask_forkserver); a worker its nanny
+#: restarts is spawned, and keeps glibc's defaults.
 LOCAL_WORKER_UNSET_ENVIRON = ("MALLOC_TRIM_THRESHOLD_",)
 
 
