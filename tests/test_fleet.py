@@ -172,11 +172,15 @@ def test_a_local_cluster_forks_its_workers_from_a_server_that_loaded_the_kernels
             "distributed.worker.profile.enabled"))
         # nor glibc's trim threshold that makes every chunk's arrays fresh mmaps
         trim = client.run(lambda: __import__("os").environ.get("MALLOC_TRIM_THRESHOLD_"))
+        # but slipd's own thresholds, set once in the forkserver (stream.keep_freed_memory)
+        kept = client.run(lambda: __import__("slipd.replay.stream").replay.stream._KEPT)
         records = fleet.run_fleet([logs / f"{n}.log" for n in names], "default", methods,
                                   tmp_path / "dataset", client, progress=False)
     assert len(preloaded) == 2
     assert set(profiling.values()) == {False}
     assert set(trim.values()) == {TRIM_THRESHOLD_OF_THE_SHELL}
+    if __import__("platform").libc_ver()[0] == "glibc":
+        assert set(kept.values()) == {True}
     assert all(loaded for loaded, _ in preloaded.values())
     assert {parent for _, parent in preloaded.values()} != {os.getpid()}
     assert [r.status for r in records] == ["ok", "ok"]
