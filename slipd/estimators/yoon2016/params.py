@@ -71,6 +71,7 @@ class PARAMS(enum.IntEnum):
     FIELD_NORM_TOLERANCE = 50  # uT, |field norm - earth field| for a gate lock-out restart
     MU_GATE_CHI2 = 51  # chi-square (1 dof): beyond it the a_y sample is down-weighted (slipd)
     ACCEL_LOWPASS_HZ = 52  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
+    ROLL_TILT = 53  # 1: the roll pseudo-measurement is the tilt asin((a_y - r v_x) / g)
 
 DEFAULTS = {
     # the heading EKF is driven by the gyro and corrected at 50 Hz; a small yaw random walk
@@ -142,4 +143,7 @@ DEFAULTS = {
     # headings not yet calibrated); a truck's disturbance is 2-15 uT
     "field_norm_tolerance": 3.0,
     "accel_lowpass_hz": 0.0,
+    # 1: the roll pseudo-measurement is the accelerometer's tilt in quasi-steady driving
+    # (bank included), 0: the static roll model always (gnss_magnetometer's docstring)
+    "roll_tilt": 1.0,
 }

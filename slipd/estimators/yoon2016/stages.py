@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 
+from slipd.channels import G
 from slipd.estimators.common.kinematics import vehicle_roll_gain
 from slipd.estimators.yoon2016.heading import (
     calibration_residual,
@@ -41,6 +42,9 @@ from slipd.estimators.yoon2016.state import (
     S,
 )
 from slipd.numba_cache import nb
+
+#: |sin| bound of the tilt pseudo-measurement (30 deg: beyond any car's roll and bank)
+MAX_TILT_SINE = 0.5
 
 
 def reset_calibration(state: np.ndarray, params: np.ndarray) -> None:
@@ -163,7 +167,7 @@ def magnetometer_update(state, params, tick, m_x, m_y, m_z, dt):
 
 @nb.njit(cache=True, inline="always")
 def heading_tick(state, params, vehicle, tick, m_x, m_y, m_z, mag_ok, new_mag, ay_imu, ay_ok,
-                  dt):  # fmt: skip
+                  tilt_seen, tilt_speed, dt):  # fmt: skip
     """1. the heading EKF (eq. 5-7): started from the magnetometer, then predicted with the
     bias-free rates of tick k-1 and updated with each new sample (``_magnetometer_update``) and
     the static roll pseudo-measurement (slipd)."""
@@ -184,8 +188,30 @@ def heading_tick(state, params, vehicle, tick, m_x, m_y, m_z, mag_ok, new_mag, a
         # slipd: the static roll model (Selmanaj 2017 eq. 16, common.kinematics) as a weak
         # pseudo-measurement; eq. 6 alone lets an uncalibrated field direction trade heading
         # for roll
-        heading_roll_update(state, HEAD, HEAD_P, SCRATCH, ay_imu * vehicle_roll_gain(vehicle),
+        heading_roll_update(state, HEAD, HEAD_P, SCRATCH,
+                            roll_pseudo_measurement(state, params, vehicle, ay_imu,
+                                                    tilt_seen, tilt_speed),
                             params[PARAMS.R_ROLL_STATIC])  # fmt: skip
+
+
+@nb.njit(cache=True, inline="always")
+def roll_pseudo_measurement(state, params, vehicle, ay_imu, tilt_seen, speed):
+    """The roll the heading EKF's weak pseudo-measurement pulls phi towards (slipd).
+
+    ``roll_tilt``, where the accelerometer carries gravity and the driving is quasi-steady
+    (``tilt_seen``) and a speed is known (``speed``, finite: the wheels' v_x, which no
+    heading error can bend, else the sideslip KF's): the tilt the accelerometer sees, phi =
+    asin((a_y - r v_x) / g), a_y less the centripetal part (the speed-aided attitude of an
+    AHRS). It is body roll and road bank together, the total tilt that turns
+    the vertical field into the magnetometer's y axis and g into a_y; its error is the
+    lateral slip rate v_y', small in quasi-steady driving (and averaged by the loose
+    variance), large in a slalom, hence the condition. Else the static roll model (Selmanaj
+    2017 eq. 16, ``vehicle_roll_gain``): body roll only, no bank; the only choice for a
+    levelled accelerometer (whose a_y shows no tilt)."""
+    if params[PARAMS.ROLL_TILT] > 0.5 and tilt_seen and math.isfinite(speed):
+        sine = (ay_imu - state[S.PREV_YAW_RATE] * speed) / G
+        return math.asin(min(max(sine, -MAX_TILT_SINE), MAX_TILT_SINE))
+    return ay_imu * vehicle_roll_gain(vehicle)
 
 
 @nb.njit(cache=True, inline="always")
