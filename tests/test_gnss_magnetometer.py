@@ -650,3 +650,21 @@ def test_a_levelled_accelerometer_is_told_by_its_az_and_keeps_its_gravity(vehicl
     assumed_body = rms(beta_error_deg(run(hidden, vehicle)[0], truth))
     print(f"level frame: beta RMS {told:.2f} deg, {assumed_body:.2f} deg with az hidden")
     assert told < 0.9 * assumed_body
+
+
+def test_the_pitch_is_the_roads_grade_from_the_gnss_climb_angle(vehicle):
+    """banked_road climbs and descends (2.5 deg RMS grade): the pitch fed to eq. 5 from the
+    GNSS velocity's climb angle (pitch_from_gnss) follows the grade; -bx / g
+    (pitch_from_bias) carries the accelerometer's offset and the KF's lag besides."""
+    U, truth = sim("banked_road")
+    n = U.shape[0]
+    moving = truth["speed"][:n] > 20.0 / 3.6
+    grade = truth["grade"][:n]
+
+    def pitch_error(overrides):
+        DIAG = run(U, vehicle, overrides)[1]
+        return float(np.degrees(rms((DIAG[:, 6] + grade)[moving])))
+
+    from_gnss, from_bias = pitch_error(None), pitch_error({"pitch_from_gnss": 0.0})
+    print(f"banked_road: pitch error {from_gnss:.2f} deg from the GNSS, {from_bias:.2f} from bx")
+    assert from_gnss < 0.6 * from_bias

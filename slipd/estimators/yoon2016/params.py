@@ -72,6 +72,7 @@ class PARAMS(enum.IntEnum):
     MU_GATE_CHI2 = 51  # chi-square (1 dof): beyond it the a_y sample is down-weighted (slipd)
     ACCEL_LOWPASS_HZ = 52  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
     ROLL_TILT = 53  # 1: the roll pseudo-measurement is the tilt asin((a_y - r v_x) / g)
+    PITCH_FROM_GNSS = 54  # 1: pitch = -(the GNSS velocity's climb angle), 0: pitch_from_bias
 
 DEFAULTS = {
     # the heading EKF is driven by the gyro and corrected at 50 Hz; a small yaw random walk
@@ -146,4 +147,7 @@ DEFAULTS = {
     # 1: the roll pseudo-measurement is the accelerometer's tilt in quasi-steady driving
     # (bank included), 0: the static roll model always (gnss_magnetometer's docstring)
     "roll_tilt": 1.0,
+    # 1: the pitch fed to eq. 5 is the road's grade from the GNSS climb angle (a levelled
+    # accelerometer has none in its bx; gnss_magnetometer's docstring has the figures)
+    "pitch_from_gnss": 1.0,
 }

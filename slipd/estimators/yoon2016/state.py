@@ -68,6 +68,8 @@ LAYOUT = build_layout(
     "FIRST_FIX_TICK",  # tick of the first GNSS fix (NaN: none yet)
     "PITCH",  # rad, pitch estimate fed to the magnetometer model (slipd)
     "YAW_RATE_BIAS",  # rad/s, b_r of eq. 7 left after the standstill offset (slipd)
+    "PATH_ANGLE",  # rad, climb angle atan(v_up / v_h) of the newest GNSS sample (NaN: none)
+    "PATH_ANGLE_SLOW",  # rad, its average from 0: the road's grade (slipd)
     "YAW_ACC_SLOW",  # rad/s^2, low-passed yaw acceleration: the tilt's quasi-steady test (slipd)
     ("CAL_PRIOR", 18),  # the calibration's prior C and covariance, for a reset
     ("SCRATCH", 16),  # working memory
