@@ -113,16 +113,32 @@ def test_gravity_share_starts_at_the_nominal_value_and_stays_bounded() -> None:
 
 
 def test_a_levelled_accelerometer_is_not_compensated() -> None:
+    """Declared levelled (the profile's frame), or told by its az reading no gravity (an INS
+    whose profile says nothing): ay comes back as it is. A body-fixed one (az ~ g, or no az
+    on the bus) is compensated."""
+    from slipd.channels import VALID, In, new_u
+    from slipd.estimators.common.inputs import accel_carries_gravity
+
     vehicle = np.zeros(len(Veh))
     vehicle[Veh.MASS], vehicle[Veh.H_ROLL_AXIS], vehicle[Veh.ROLL_STIFFNESS] = 1500.0, 0.5, 8e4
     buf = np.full(1 + len(kinematics.GravityMoments), np.nan)
-    body = kinematics.remove_roll_gravity(buf, 0, 6.0, 0.0, False, DT, vehicle, 0.5, -1, 0.3,
-                                          0.0, 20.0)
+    u = new_u()
+
+    def removed(u) -> float:
+        buf[:] = np.nan
+        return kinematics.remove_roll_gravity(buf, 0, 6.0, 0.0, False, DT, vehicle,
+                                              accel_carries_gravity(u, vehicle), 0.5, -1, 0.3,
+                                              0.0, 20.0)
+
+    body = removed(u)  # no az on the bus
     assert body < 6.0 - 0.5
+    u[In.AZ], u[VALID + In.AZ] = 9.81, 1.0
+    assert removed(u) == body
+    u[In.AZ] = 0.2  # a levelled sensor's az: no gravity
+    assert removed(u) == 6.0
+    u[In.AZ] = 9.81
     vehicle[Veh.ACCEL_LEVEL] = 1.0
-    buf[:] = np.nan
-    assert kinematics.remove_roll_gravity(buf, 0, 6.0, 0.0, False, DT, vehicle, 0.5, -1, 0.3,
-                                          0.0, 20.0) == 6.0
+    assert removed(u) == 6.0
 
 
 @settings(max_examples=200, deadline=None)

@@ -19,6 +19,7 @@ from slipd.channels import (
     ST_DEGRADED,
     ST_INPUT_TIMEOUT,
     VALID,
+    G,
     In,
     Veh,
 )
@@ -40,6 +41,18 @@ def channel(u, ch):
     """(value, ok) of input channel ``ch``: ok when its validity flag is set and it is finite."""
     v = u[ch]
     return v, (u[VALID + ch] > 0.5 and math.isfinite(v))
+
+
+@nb.njit(cache=True, inline="always")
+def accel_carries_gravity(u, vehicle):
+    """Whether the accelerometer's a_y carries g sin(roll): not where the profile declares it
+    levelled (``Veh.ACCEL_LEVEL``, an INS), nor where its az, when on the bus, reads no
+    gravity (a levelled sensor's az is ~0, a body-fixed one's ~g), so an INS whose profile
+    does not say so is still told apart."""
+    if vehicle[Veh.ACCEL_LEVEL] > 0.5:
+        return False
+    az, az_ok = channel(u, In.AZ)
+    return not az_ok or abs(az) > 0.5 * G
 
 
 @nb.njit(cache=True, inline="always")
@@ -250,7 +263,7 @@ def read_inputs(state, base, u, vehicle, yaw_fallback, cutoff_hz, roll_time_cons
             status |= ST_DEGRADED  # roll from the static model alone
         vx, _ = corner_speed_mean(u, steer, yaw_rate, vehicle)
         ay = remove_roll_gravity(state, base + ImuMemory.ROLL, ay, roll_rate, roll_rate_ok, dt,
-                                 vehicle, roll_time_constant,
+                                 vehicle, accel_carries_gravity(u, vehicle), roll_time_constant,
                                  base + ImuMemory.GRAVITY_W if learn_roll_gain else -1,
                                  yaw_rate, yaw_acc, vx)  # fmt: skip
     return (ax, ay, yaw_rate, yaw_acc, steer, roll_rate, ax_ok, ay_ok, yaw_rate_ok, steer_ok,

@@ -193,8 +193,8 @@ def learn_gravity_share(buf, i, ay_measured, yaw_rate, yaw_acc, vx, dt, nominal_
 
 
 @nb.njit(cache=True, inline="always")
-def remove_roll_gravity(buf, i, ay_cog, roll_rate, roll_rate_valid, dt, vehicle, time_constant,
-                        learn_at, yaw_rate, yaw_acc, vx):  # fmt: skip
+def remove_roll_gravity(buf, i, ay_cog, roll_rate, roll_rate_valid, dt, vehicle, gravity_in_ay,
+                        time_constant, learn_at, yaw_rate, yaw_acc, vx):  # fmt: skip
     """ay without the gravity component of the body roll: the roll of
     ``roll_complementary_filter`` (memory ``buf[i]``), then eq. 17. Not in Righetti-Lenzo,
     Carnier or Chen; slipd adds it to their pre-processing (each method's docstring says why).
@@ -202,9 +202,9 @@ def remove_roll_gravity(buf, i, ay_cog, roll_rate, roll_rate_valid, dt, vehicle,
     The static roll gain is the profile's (``vehicle_roll_gain``, Selmanaj eq. 16) when
     ``learn_at`` < 0, else learnt from the drive (``learn_gravity_share``, memory
     GravityMoments at ``buf[learn_at]``; a slipd departure, the methods' ``roll_gain_learning``
-    parameter). An accelerometer the profile declares levelled (``Veh.ACCEL_LEVEL``, an INS)
-    carries no gravity: ay is returned as it is."""
-    if vehicle[Veh.ACCEL_LEVEL] > 0.5:
+    parameter). An accelerometer without gravity in its a_y (``gravity_in_ay`` False:
+    ``common.inputs.accel_carries_gravity``, a levelled INS) gets ay back as it is."""
+    if not gravity_in_ay:
         return ay_cog
     gain = vehicle_roll_gain(vehicle)
     if learn_at >= 0:

@@ -126,6 +126,7 @@ from slipd.estimators.common.inputs import (
     LOWPASS_FIRST,
     ImuMemory,
     Offsets,
+    accel_carries_gravity,
     ax_offset_active,
     channel,
     corner_speed_mean,
@@ -298,7 +299,8 @@ def _accelerations(state, u, params, vehicle, dt, roll_rate_ok, pitch_rate_ok, l
     vx, _ = corner_speed_mean(u, state[_STEER_HELD], yaw_rate, vehicle)
     learn_at = _GRAVITY if params[PARAMS.ROLL_GAIN_LEARNING] > 0.5 else -1
     ay_with_offset = remove_roll_gravity(state, _ROLL, ay_cog, roll_rate, roll_rate_ok, dt,
-                                         vehicle, params[PARAMS.ROLL_FILTER_TIME_CONSTANT],
+                                         vehicle, accel_carries_gravity(u, vehicle),
+                                         params[PARAMS.ROLL_FILTER_TIME_CONSTANT],
                                          learn_at, yaw_rate, yaw_acc, vx)  # fmt: skip
     return ax_cog, ay_with_offset, yaw_rate, yaw_acc
 

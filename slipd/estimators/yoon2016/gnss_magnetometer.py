@@ -70,10 +70,10 @@ Beyond the paper (all marked, all slipd's choices, each measured on the simulato
   1.57 / 1.42 deg against 2.16 / 2.09 (seeds 0 / 1), banked_road 1.75 against 3.05, the
   sensor variants 1.55-1.76 against 2.16-2.79; its roll error on the endurance drive 0.47
   against 1.57 deg, its heading error 1.6 against 2.3 deg.
-- Levelled accelerometer: where the profile declares the accelerometer levelled
-  (``Veh.ACCEL_LEVEL``) or its az on the bus reads no gravity (|az| < g / 2: an INS's
-  gravity-free output), a_y carries no g sin(phi): eq. 9 takes a_y as it is and the roll
-  pseudo-measurement is the static model's.
+- Levelled accelerometer (``common.inputs.accel_carries_gravity``, as every method's
+  preprocessing: declared in the profile, or its az on the bus reading no gravity): a_y carries
+  no g sin(phi), so eq. 9 takes a_y as it is and the roll pseudo-measurement is the static
+  model's.
 - Gate lock-out: when the gate has rejected every sample for ``gate_lockout_s`` while the
   field's norm matches the earth field's (``field_norm_tolerance``, the paper's basis of
   disturbance detection, Sec. 2.2) the model, not the field, is wrong: psi restarts from the
@@ -120,9 +120,11 @@ from slipd.channels import (
     Veh,
 )
 from slipd.errors import ConfigError
+from slipd.estimators.common.filters import lowpass
 from slipd.estimators.common.inputs import (
     ImuMemory,
     Offsets,
+    accel_carries_gravity,
     channel,
     corner_speed_mean,
     hold_last,
@@ -370,17 +372,14 @@ def step(state, u, params, vehicle, dt, out):
         vehicle, True, params[PARAMS.ACCEL_LOWPASS_HZ],
     )  # fmt: skip
     ay_imu = u[In.AY]  # at the sensor, for the roll pseudo-measurement
-    # slipd: whether a_y carries g sin(phi): not where the profile declares the accelerometer
-    # levelled (an INS), nor where its az, when on the bus, shows no gravity (a levelled
-    # sensor reads ~0 there, a body-fixed one ~g)
-    az, az_ok = channel(u, In.AZ)
-    gravity_in_ay = vehicle[Veh.ACCEL_LEVEL] < 0.5 and (not az_ok or abs(az) > 0.5 * G)
+    gravity_in_ay = accel_carries_gravity(u, vehicle)  # slipd: not for a levelled INS
     # quasi-steady (common.kinematics' criterion, on the yaw acceleration low-passed at
     # TILT_YAW_ACC_CUTOFF_HZ): a_y - r v_x is then tilt, not lateral slip rate
+    yaw_acc_slow = state[S.YAW_ACC_SLOW]
     if math.isfinite(yaw_acc):
-        state[S.YAW_ACC_SLOW] += min(2.0 * math.pi * TILT_YAW_ACC_CUTOFF_HZ * dt, 1.0) * (
-            yaw_acc - state[S.YAW_ACC_SLOW])
-    tilt_seen = gravity_in_ay and abs(state[S.YAW_ACC_SLOW]) < GRAVITY_SHARE_MAX_YAW_ACC
+        yaw_acc_slow = lowpass(state, S.YAW_ACC_SLOW, yaw_acc, dt,
+                               1.0 / (2.0 * math.pi * TILT_YAW_ACC_CUTOFF_HZ))
+    tilt_seen = gravity_in_ay and abs(yaw_acc_slow) < GRAVITY_SHARE_MAX_YAW_ACC
     ax = hold_last(state, _LAST_AX, ax, ax_ok)
     if not (ax_ok and ay_ok):
         status |= ST_INPUT_TIMEOUT
@@ -447,8 +446,7 @@ def step(state, u, params, vehicle, dt, out):
         # PATH_ANGLE_TIME_CONSTANT from a level road (0.1 m/s of vertical noise is 0.3 deg a
         # sample at 20 m/s; taking the first sample as it is cost the endurance drive 1.11 ->
         # 1.33 deg: a noisy first climb angle levels the first calibration samples wrongly)
-        state[S.PATH_ANGLE_SLOW] += min(dt / PATH_ANGLE_TIME_CONSTANT, 1.0) * (
-            path - state[S.PATH_ANGLE_SLOW])
+        lowpass(state, S.PATH_ANGLE_SLOW, path, dt, PATH_ANGLE_TIME_CONSTANT)
     if params[PARAMS.PITCH_FROM_GNSS] > 0.5 and math.isfinite(path):
         # ISO 8855 pitch is nose-down positive: climbing is a negative pitch
         max_pitch = params[PARAMS.MAX_PITCH]
