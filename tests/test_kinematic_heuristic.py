@@ -217,6 +217,32 @@ def test_steady_hold_bounds_the_vy_ramp_of_an_ay_bias_in_a_steady_corner() -> No
     assert np.max(np.abs(beta_on[t > 55.0])) < 0.5
 
 
+def test_steady_bias_of_a_banked_corner_fades_on_the_straight_before_a_flat_one() -> None:
+    # A banked left corner (ay bias 0.5 m/s^2, learnt as the steady bias), 2 s of straight,
+    # then a flat right corner: the bank is the first corner's, not the road's. Held (the
+    # bias time constant alone, forget = 0) it is subtracted through the second turn-in
+    # (1.33 deg off); faded on the straight with F it is gone before the turn-in (0.24 deg).
+    vehicle = imu_at_cog(bmw_vehicle())
+    t = np.arange(0.0, 70.0, DT)
+
+    def ramp(start, end):
+        return np.clip((t - start) / (end - start), 0.0, 1.0)
+
+    banked = ramp(10.0, 12.0) - ramp(32.0, 34.0)
+    flat = ramp(36.0, 38.0) - ramp(66.0, 68.0)
+    yaw_rate = 0.25 * (banked - flat)
+    vx = np.full_like(t, 20.0)
+    steer = (vehicle[Veh.LF] + vehicle[Veh.LR]) * yaw_rate / vx
+    U = rigid_body_inputs(vx, np.zeros_like(t), yaw_rate, steer, vehicle, ay_offset=0.5 * banked)
+    held = np.degrees(run(U, {**PAPER_INPUTS, "steady_bias_straight_forget": 0.0},
+                          vehicle=vehicle)[:, Out.BETA])
+    faded = np.degrees(run(U, PAPER_INPUTS, vehicle=vehicle)[:, Out.BETA])
+    second = t > 36.0
+    assert np.max(np.abs(held[second])) > 1.0
+    assert np.max(np.abs(faded[second])) < 0.4
+    assert np.max(np.abs(faded[t < 34.0])) < 2.0  # the banked corner itself as before
+
+
 def test_steady_hold_is_off_in_a_countersteered_drift() -> None:
     # The same steady (Ay - omega_z Vx), but steering against the yaw rate: a drift, whose slow
     # sideslip change is real. The hold must let the observer integrate it (as the paper).

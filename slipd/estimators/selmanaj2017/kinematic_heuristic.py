@@ -77,8 +77,12 @@ Vy_hat' loses the fraction hold = steady_gain * S of its open-loop integrand
 in a corner turns an Ax bias such as the road grade into a Vy error of bias / omega_z), and
 (ii) (Ay - omega_z Vx) is learnt as a bias with time constant ``steady_bias_time_constant`` =
 3 s and weight S, held through the next transient and subtracted from Ay (observer and
-eq. 6). Eq. 8's Lyapunov argument still holds (the e_x -> e_y coupling stays
--(a2 + 1 - hold) omega_z with a2 + 1 - hold > 0). What it rests on, and its limit: a real
+eq. 6). On a straight it fades with the heuristic's weight F / F_max and the time constant
+``steady_bias_straight_forget`` = 1 s (F_max's own): a bank belongs to its corner, and a bias
+held into the next corner of a track (the real revs_250lm run: +0.2 m/s^2 learnt in one
+corner, subtracted through the next two) is an error of its own (0 = held until re-learnt).
+Eq. 8's Lyapunov argument still holds (the e_x -> e_y coupling stays -(a2 + 1 - hold) omega_z
+with a2 + 1 - hold > 0). What it rests on, and its limit: a real
 sideslip change with steady steer, yaw rate and ay (a slow drift without countersteer) is
 taken for bias.
 Measured on the simulator suite (benchmarks/MEASUREMENTS.md): it takes the banked road,
@@ -406,6 +410,10 @@ def _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx,
         # steady state; subtracted from Ay (observer and eq. 6) from the next tick on.
         gain = min(dt * steady / bias_tc, 1.0)
         state[S.STEADY_BIAS] += gain * (residual - state[S.STEADY_BIAS])
+    forget = params[PARAMS.STEADY_BIAS_STRAIGHT_FORGET]
+    if forget > 0.0 and params[PARAMS.F_GAIN] > 0.0:
+        weight = state[S.F] / params[PARAMS.F_GAIN]
+        state[S.STEADY_BIAS] -= min(dt * weight / forget, 1.0) * state[S.STEADY_BIAS]
     return min(steady_gain, 1.0) * steady
 
 

@@ -49,6 +49,7 @@ class PARAMS(enum.IntEnum):
     STEADY_COUNTERSTEER = 33  # -, 1: steering against the yaw rate (a drift) is never steady
     ROLL_GAIN_LEARNING = 34  # 1: eq. 16's static roll gain learnt from the drive, 0 = paper
     ACCEL_LOWPASS_HZ = 35  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
+    STEADY_BIAS_STRAIGHT_FORGET = 36  # s, the steady bias fades on straights (weight F), 0 = held
 
 
 #: Table 1 of Selmanaj et al. 2017, verbatim (paper symbol -> params name): alpha_0, alpha_1,
@@ -117,6 +118,9 @@ DEFAULTS: dict[str, float] = {
     "steady_bias_time_constant": 3.0,
     "steady_hold_correction": 0.5,
     "steady_countersteer": 1.0,
+    # A straight ends the corner whose bank the steady bias learnt: it fades there (weight
+    # F / f_gain) with F_max's own 1 s time constant (figures in benchmarks/MEASUREMENTS.md).
+    "steady_bias_straight_forget": 1.0,
     # Extension, not in the paper (0 = eq. 16 with the profile's roll data): the gravity share
     # of ay learnt from quasi-steady driving (kinematics.learn_gravity_share); a wrong roll
     # stiffness or a levelled accelerometer otherwise biases ay in every corner (issue 17).
