@@ -47,7 +47,7 @@ print(inputs[["t", "ay", "yaw_rate", "steer", "wheel_speed_fl", "ay_valid"]].des
 
 # %% [markdown]
 # ## 3. Three methods over the whole run, and their scores against the INS truth
-# `d_ekf` (Righetti & Lenzo 2025's dynamic EKF), the default `kinematic_heuristic`
+# The default `d_ekf` (Righetti & Lenzo 2025's dynamic EKF), `kinematic_heuristic`
 # (Selmanaj et al. 2017) and `zero`, the floor. The scores include how often each was
 # VALID and how often a VALID tick was more than 5 deg off.
 
