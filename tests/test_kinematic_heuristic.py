@@ -243,6 +243,29 @@ def test_steady_bias_of_a_banked_corner_fades_on_the_straight_before_a_flat_one(
     assert np.max(np.abs(faded[t < 34.0])) < 2.0  # the banked corner itself as before
 
 
+def test_steady_jerk_bell_widens_to_a_vibrating_accelerometers_noise() -> None:
+    # The banked steady corner with 1 m/s^2 of white vibration on ay (a raw IMU's, as on the
+    # real revs_250lm run): through the 5 Hz low-pass and the detector's 1 Hz derivative the
+    # jerk on the 10 s straight is ~0.3 m/s^3 RMS, whose peaks keep knocking the fixed 3.2
+    # m/s^3 bell shut, so the hold flickers and the bias ramps in (3.0 deg); the width at 12 x
+    # the noise measured on the straight lets it hold (1.65 deg).
+    vehicle = imu_at_cog(bmw_vehicle())
+    t, U = _banked_steady_corner(vehicle)
+    U[:, In.AY] += np.random.default_rng(3).standard_normal(len(t))
+    inputs = {"roll_gain_learning": 0.0}
+    fixed = np.degrees(run(U, {**inputs, "steady_jerk_noise_width": 0.0},
+                           vehicle=vehicle)[:, Out.BETA])
+    params = make_params(kh, inputs)
+    state = kh.init(params, vehicle)
+    OUT = np.zeros((U.shape[0], N_OUT))
+    kh.run_ticks(state, U, params, vehicle, DT, OUT)
+    widened = np.degrees(OUT[:, Out.BETA])
+    assert np.isfinite(state[kh.S.JERK_NOISE])
+    assert 12.0 * math.sqrt(state[kh.S.JERK_NOISE]) > params[kh.PARAMS.SIGMA_STEADY_JERK]
+    assert np.max(np.abs(fixed)) > 2.5
+    assert np.max(np.abs(widened)) < 2.0
+
+
 def test_steady_hold_is_off_in_a_countersteered_drift() -> None:
     # The same steady (Ay - omega_z Vx), but steering against the yaw rate: a drift, whose slow
     # sideslip change is real. The hold must let the observer integrate it (as the paper).

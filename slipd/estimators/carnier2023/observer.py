@@ -40,7 +40,7 @@ import math
 import numpy as np
 
 from slipd.channels import G, Veh
-from slipd.estimators.common.filters import lowpass
+from slipd.estimators.common.filters import STRAIGHT_SETTLE, lowpass, noise_power
 from slipd.estimators.common.inputs import ImuMemory, reset_imu
 from slipd.estimators.common.layout import build_layout
 from slipd.estimators.common.tyres import slip_angles, tanh_tyre
@@ -424,10 +424,6 @@ def _switch_rate(state, ay, yaw_rate, vx, beta_rate_highpass, dt):
     return beta_dot
 
 
-#: s of straight running before the switches' noise is sampled (``_switch_noise``)
-STRAIGHT_SETTLE = 2.0
-
-
 @nb.njit(cache=True, inline="always")
 def _switch_noise(state, beta_dot, vx, yaw_rate, straight_yaw_rate, time_constant, dt):
     """slipd: the noise of the switches' beta_dot, as the acceleration vx beta_dot that drives
@@ -446,10 +442,8 @@ def _switch_noise(state, beta_dot, vx, yaw_rate, straight_yaw_rate, time_constan
     the high-grip model and the classifier sees less slip."""
     straight = abs(yaw_rate) < straight_yaw_rate
     state[S.STRAIGHT_TIME] = state[S.STRAIGHT_TIME] + dt if straight else 0.0
-    if state[S.STRAIGHT_TIME] >= STRAIGHT_SETTLE:
-        accel = beta_dot * vx
-        lowpass(state, S.SWITCH_NOISE, accel * accel, dt, time_constant)
-    noise = state[S.SWITCH_NOISE]
+    noise = noise_power(state, S.SWITCH_NOISE, beta_dot * vx,
+                        state[S.STRAIGHT_TIME] >= STRAIGHT_SETTLE, dt, time_constant)
     return math.sqrt(noise) / vx if math.isfinite(noise) else math.nan
 
 

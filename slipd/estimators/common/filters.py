@@ -69,6 +69,24 @@ def leak(buf, i, dt, time_constant):
         buf[i] *= 1.0 - min(dt / time_constant, 1.0)
 
 
+#: s of straight running (|yaw rate| below a threshold) before a signal whose true value is
+#: then ~0 is sampled as noise (``noise_power``): a slalom's yaw rate crosses zero where its
+#: sideslip rate peaks.
+STRAIGHT_SETTLE = 2.0
+
+
+@nb.njit(cache=True, inline="always")
+def noise_power(buf, i, signal, sampling, dt, time_constant):
+    """The mean square of ``signal`` averaged (``lowpass``, ``time_constant``) over the ticks
+    where ``sampling`` says its true value is ~0 (going straight: what is left is the sensors'
+    noise and the body's vibration); returns it from ``buf[i]``, NaN until first sampled.
+    slipd's, for thresholds and bell widths set "above the noise" on sensors they were not
+    tuned on (hybrid_friction's switches, kinematic_heuristic's bells)."""
+    if sampling:
+        lowpass(buf, i, signal * signal, dt, time_constant)
+    return buf[i]
+
+
 @nb.njit(cache=True, inline="always")
 def gaussian_bell(a, sigma_a, b, sigma_b):
     """exp(-(a^2 / sigma_a^2 + b^2 / sigma_b^2) / 2): Selmanaj eq. 5-7's bivariate Gaussian, 1 at

@@ -71,7 +71,10 @@ derivatives only -- yaw acceleration, steering-wheel rate and d/dt (Ay - omega_z
 its own 1 Hz derivative filters (``steady_cutoff_hz``; the 10 Hz ones of eq. 7 are too noisy
 for bells narrow enough to see a 0.25-1 Hz manoeuvre), widths ``sigma_steady_*`` -- times a
 countersteer bell (steering against the yaw rate = a drift, whose slow sideslip change is
-real), rate-limited to rise in ``steady_rise_time`` = 1 s and to drop at once. Then (i)
+real), rate-limited to rise in ``steady_rise_time`` = 1 s and to drop at once. The jerk bell's
+width follows the paper's own rule for its bells online: at least ``steady_jerk_noise_width``
+= 12 x the jerk's RMS on straights (``common.filters.noise_power``), since a raw IMU's body
+vibration (~1 m/s^2) otherwise keeps knocking it shut and the hold flickers. Then (i)
 Vy_hat' loses the fraction hold = steady_gain * S of its open-loop integrand
 (Ay - omega_z Vx_hat) and hold * ``steady_hold_correction`` (0.5) of the a2 correction (which
 in a corner turns an Ax bias such as the road grade into a Vy error of bias / omega_z), and
@@ -123,7 +126,12 @@ from slipd.channels import (
     In,
     Veh,
 )
-from slipd.estimators.common.filters import derivative_filter, gaussian_bell
+from slipd.estimators.common.filters import (
+    STRAIGHT_SETTLE,
+    derivative_filter,
+    gaussian_bell,
+    noise_power,
+)
 from slipd.estimators.common.inputs import (
     LEARNT_OFFSETS,
     LOWPASS_END,
@@ -175,6 +183,8 @@ LAYOUT = build_layout(
     "D_STEADY_YAW",  # the steady detector's derivative-filter memories
     "D_STEADY_STEER",
     "D_STEADY_RESIDUAL",
+    "STRAIGHT_TIME",  # s the yaw rate has stayed below noise_straight_yaw_rate
+    "JERK_NOISE",  # (m/s^3)^2, the steady detector's d/dt (Ay - omega_z Vx) on straights (NaN)
 )
 S = LAYOUT.S
 #: Kept across restarts by the daemon: the learnt sensor offsets, which the paper carries over
@@ -200,6 +210,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     state = np.zeros(LAYOUT.size, dtype=np.float64)  # learnt blocks start empty (0)
     _reset(state, params)
     reset_offsets(state, _OFFSETS)
+    state[S.JERK_NOISE] = math.nan  # the sensors' noise outlives a reset of the observer
     return state
 
 
@@ -229,6 +240,7 @@ def _reset(state, params):
     state[S.STEADY_BIAS] = 0.0
     for k in range(_STEADY_DERIVATIVES[0], _STEADY_DERIVATIVES[1]):
         state[k] = math.nan
+    state[S.STRAIGHT_TIME] = 0.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -346,6 +358,16 @@ def straight_heuristic(f_gain, yaw_rate, yaw_acc, steer_wheel, steer_wheel_rate,
 
 
 @nb.njit(cache=True, inline="always")
+def _noise_sampling(state, params, yaw_rate, vx_meas, have_vx, dt):
+    """Whether this tick's bell signals are noise: moving, |omega_z| below
+    ``noise_straight_yaw_rate`` for ``filters.STRAIGHT_SETTLE`` s."""
+    straight = (have_vx and vx_meas > params[PARAMS.MIN_SPEED]
+                and abs(yaw_rate) < params[PARAMS.NOISE_STRAIGHT_YAW_RATE])  # fmt: skip
+    state[S.STRAIGHT_TIME] = state[S.STRAIGHT_TIME] + dt if straight else 0.0
+    return state[S.STRAIGHT_TIME] >= STRAIGHT_SETTLE
+
+
+@nb.njit(cache=True, inline="always")
 def _heuristic(state, params, steer_wheel, yaw_rate, yaw_acc, ay, vx_meas, dt):
     """Eq. 6-7 with their derivative filters; returns F (1/s), also kept in state[F]."""
     cutoff = params[PARAMS.DERIVATIVE_CUTOFF_HZ]
@@ -369,7 +391,26 @@ def _heuristic(state, params, steer_wheel, yaw_rate, yaw_acc, ay, vx_meas, dt):
 
 
 @nb.njit(cache=True, inline="always")
-def _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx, dt):
+def _jerk_width(state, params, residual_rate, sampling, dt):
+    """The steady detector's jerk-bell width by the paper's rule for its bells (section 2.1:
+    wider than the noise of the signal), applied online: max(``sigma_steady_jerk``,
+    ``steady_jerk_noise_width`` x the RMS of d/dt (Ay - omega_z Vx) on straights). The one
+    bell on an accelerometer signal: a raw IMU's body vibration reaches it, not the gyro's
+    and the steering's (their signals on straights are driving as much as noise)."""
+    multiple = params[PARAMS.STEADY_JERK_NOISE_WIDTH]
+    sigma = params[PARAMS.SIGMA_STEADY_JERK]
+    if not multiple > 0.0:
+        return sigma
+    power = noise_power(state, S.JERK_NOISE, residual_rate, sampling, dt,
+                        params[PARAMS.NOISE_TIME_CONSTANT])  # fmt: skip
+    if not math.isfinite(power):
+        return sigma
+    return max(sigma, multiple * math.sqrt(power))
+
+
+@nb.njit(cache=True, inline="always")
+def _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx, sampling,
+                 dt):  # fmt: skip
     """Extension (module docstring): the steady indicator S, the steady-state ay bias it
     learns, and the share of the open-loop integrand it holds. Returns hold (0 = the paper).
 
@@ -391,7 +432,7 @@ def _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx,
         yaw_acc_slow, params[PARAMS.SIGMA_STEADY_YAW_ACC],
         steer_rate_slow, params[PARAMS.SIGMA_STEADY_STEER_RATE],
     ) * gaussian_bell(
-        residual_rate, params[PARAMS.SIGMA_STEADY_JERK],
+        residual_rate, _jerk_width(state, params, residual_rate, sampling, dt),
         countersteer, params[PARAMS.SIGMA_STEER],
     )  # fmt: skip
     if not math.isfinite(steady_now) or not have_vx or vx_meas < params[PARAMS.MIN_SPEED]:
@@ -513,8 +554,10 @@ def step(state, u, params, vehicle, dt, out):
     steer_wheel = steer * vehicle[Veh.STEER_RATIO]
     ay_raw = ay
     ay = ay - state[S.STEADY_BIAS]  # extension: steady-state ay bias (0 when off)
+    sampling = _noise_sampling(state, params, yaw_rate, vx_meas, have_vx, dt)
     f_heuristic = _heuristic(state, params, steer_wheel, yaw_rate, yaw_acc, ay, vx_meas, dt)
-    hold = _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx, dt)
+    hold = _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx,
+                        sampling, dt)  # fmt: skip
 
     # --- observer (eq. 5), forward Euler at the tick rate ------------------------------
     vx_dot, vy_dot, gain_x = observer_derivatives(

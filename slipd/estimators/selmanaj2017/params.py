@@ -5,6 +5,7 @@ derivative widths and the extensions)."""
 from __future__ import annotations
 
 import enum
+import math
 
 from slipd.estimators.common.filters import DERIVATIVE_CUTOFF_HZ
 from slipd.estimators.common.inputs import ACCEL_OFFSET_SETTLING_S, GYRO_OFFSET_SETTLING_S
@@ -50,6 +51,9 @@ class PARAMS(enum.IntEnum):
     ROLL_GAIN_LEARNING = 34  # 1: eq. 16's static roll gain learnt from the drive, 0 = paper
     ACCEL_LOWPASS_HZ = 35  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
     STEADY_BIAS_STRAIGHT_FORGET = 36  # s, the steady bias fades on straights (weight F), 0 = held
+    STEADY_JERK_NOISE_WIDTH = 37  # -, the jerk bell at least this x its noise; 0 = fixed width
+    NOISE_STRAIGHT_YAW_RATE = 38  # rad/s, below it (for 2 s) the jerk is noise
+    NOISE_TIME_CONSTANT = 39  # s, averaging of that noise
 
 
 #: Table 1 of Selmanaj et al. 2017, verbatim (paper symbol -> params name): alpha_0, alpha_1,
@@ -121,6 +125,15 @@ DEFAULTS: dict[str, float] = {
     # A straight ends the corner whose bank the steady bias learnt: it fades there (weight
     # F / f_gain) with F_max's own 1 s time constant (figures in benchmarks/MEASUREMENTS.md).
     "steady_bias_straight_forget": 1.0,
+    # The paper's rule for its bell widths (section 2.1, "wider than the noise of the
+    # signal") applied online to the steady detector's jerk bell (not in the paper; 0 = the
+    # fixed width): at least 12 x (the multiple the steady bells were set with above) the RMS
+    # of the jerk on straights (|omega_z| below Carnier 2023's omega_z bar, 5 deg/s, for 2 s,
+    # as hybrid_friction's switches; averaged over 10 s). The default profile's sensors leave
+    # it at sigma_steady_jerk; a raw, vibrating IMU widens it (benchmarks/MEASUREMENTS.md).
+    "steady_jerk_noise_width": 12.0,
+    "noise_straight_yaw_rate": math.radians(5.0),
+    "noise_time_constant": 10.0,
     # Extension, not in the paper (0 = eq. 16 with the profile's roll data): the gravity share
     # of ay learnt from quasi-steady driving (kinematics.learn_gravity_share); a wrong roll
     # stiffness or a levelled accelerometer otherwise biases ay in every corner (issue 17).
