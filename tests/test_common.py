@@ -55,6 +55,20 @@ def test_lowpass_settles_with_its_time_constant() -> None:
     assert buf[0] == pytest.approx(1.0 - math.exp(-1.0), abs=0.01)
 
 
+def test_noise_power_is_the_mean_square_of_the_sampled_ticks_only() -> None:
+    # NaN until the first sampled tick; then the RMS of white noise of sigma 0.7 (the
+    # driving in between, a 5.0 offset, never sampled, must not leak in).
+    rng = np.random.default_rng(1)
+    buf = np.full(1, np.nan)
+    assert math.isnan(filters.noise_power(buf, 0, 5.0, False, DT, 10.0))
+    sigma = 0.7
+    for k in range(60_000):
+        sampled = (k // 500) % 2 == 0
+        value = sigma * rng.standard_normal() if sampled else 5.0
+        power = filters.noise_power(buf, 0, value, sampled, DT, 10.0)
+    assert math.sqrt(power) == pytest.approx(sigma, rel=0.1)
+
+
 # ----------------------------------------------------------------------------- CoG
 
 
