@@ -72,6 +72,45 @@ def test_names_from_a_command_line():
         registry.load("zero", {"bogus": 1.0})
 
 
+def test_a_name_with_parameter_values_is_the_method_with_them_set(profile):
+    name = "pseudo_fusion_kbe:min_speed=4:kbe_vy_leak_time_constant=0"
+    tuned = registry.load(name)
+    base = registry.load("pseudo_fusion_kbe")
+    assert tuned.name == name and tuned.module is base.module
+    params = tuned.module.PARAMS
+    assert tuned.params[params.MIN_SPEED] == 4.0
+    assert tuned.params[params.KBE_VY_LEAK_TIME_CONSTANT] == 0.0
+    assert tuned.params[params.PART] == base.params[params.PART]  # the variant's own stay
+    assert not tuned.spec.ensemble
+    assert Pipeline(name, profile).wire_id == WIRE_IDS["pseudo_fusion_kbe"]
+    assert registry.parse_names(f"pseudo_fusion_kbe,{name}") == ["pseudo_fusion_kbe", name]
+    # the paper's observer beside slipd's default in one run, through the whole data path
+    from slipd.api import estimate, simulate
+
+    log = simulate("step_steer", duration=8.0)
+    both = estimate(log, estimator=["kinematic_heuristic", "kinematic_heuristic:steady_gain=0"])
+    by_override = estimate(log, estimator="kinematic_heuristic",
+                           overrides={"steady_gain": 0.0})
+    default = estimate(log, estimator="kinematic_heuristic")
+    tuned_beta = both[both.estimator == "kinematic_heuristic:steady_gain=0"].beta.to_numpy()
+    assert np.array_equal(tuned_beta, by_override.beta.to_numpy())
+    assert np.array_equal(both[both.estimator == "kinematic_heuristic"].beta.to_numpy(),
+                          default.beta.to_numpy())
+    assert not np.array_equal(tuned_beta, default.beta.to_numpy())
+
+
+@pytest.mark.parametrize(("name", "message"), [
+    ("d_ekf:min_speed", "'min_speed' is not KEY=VALUE"),
+    ("d_ekf:=3", "'=3' is not KEY=VALUE"),
+    ("d_ekf:min_speed=fast", "min_speed = 'fast' is not a number"),
+    ("d_ekf:min_sped=3", "estimator 'd_ekf:min_sped=3': unknown parameter 'min_sped'"),
+    ("d_ekff:min_speed=3", "unknown estimator 'd_ekff'"),
+])
+def test_a_bad_parameter_value_in_a_name_says_which_and_why(name, message):
+    with pytest.raises(ConfigError, match=message):
+        registry.parse_names(f"zero,{name}")
+
+
 def test_ensemble_members_come_from_the_registry():
     from slipd.estimators import ensemble
 

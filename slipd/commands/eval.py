@@ -39,7 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--suite", type=Path, metavar="DIR",
                         help="evaluate every DIR/*.log with its DIR/*.truth.csv")
     parser.add_argument("--estimator", default="all",
-                        help="estimator name, comma-separated names, or 'all' (default)")
+                        help="estimator name, comma-separated names, or 'all' (default); "
+                             "METHOD:KEY=VALUE[:KEY=VALUE...] scores a method with parameters "
+                             "set (kinematic_heuristic:steady_gain=0: the paper's observer)")
     parser.add_argument("--min-speed", type=float, default=20.0, metavar="KPH",
                         help="score only samples with truth speed above this (default 20 km/h)")
     parser.add_argument("--profile", default="default", help="vehicle profile of the log")

@@ -17,7 +17,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="vehicle profile name or TOML path (default: default)")
     parser.add_argument("--estimator", default=registry.DEFAULT_ESTIMATOR,
                         help="method name, comma-separated names, or 'all' "
-                             f"(default: {registry.DEFAULT_ESTIMATOR})")
+                             f"(default: {registry.DEFAULT_ESTIMATOR}); "
+                             "METHOD:KEY=VALUE[:KEY=VALUE...] runs a method with parameters "
+                             "set (kinematic_heuristic:steady_gain=0: the paper's observer)")
     parser.add_argument("--out", type=Path,
                         help="write per-tick estimates to FILE.csv (+ FILE.csv.meta.json), "
                              "FILE.parquet, FILE.mcap (inputs, estimates and truth as topics, "

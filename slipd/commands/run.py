@@ -122,7 +122,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="more arguments for python-can's Bus(), e.g. receive_own_messages=1")
     bus.add_argument("--listen-only", action="store_true", default=None,
                      help="estimate and record, send nothing (a first drive on an unknown car)")
-    parser.add_argument("--estimator", help=f"method (default {registry.DEFAULT_ESTIMATOR})")
+    parser.add_argument("--estimator", help=f"method (default {registry.DEFAULT_ESTIMATOR}); "
+                        "METHOD:KEY=VALUE[:KEY=VALUE...] sets its parameters")
     parser.add_argument("--duration", type=float, help="stop after S seconds")
     parser.add_argument("--recorder", type=Path, help="flight-recorder candump log")
     parser.add_argument("--recorder-max-mb", type=float, metavar="MB",

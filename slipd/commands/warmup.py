@@ -30,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", help="vehicle profile name or TOML path")
     parser.add_argument("--estimator",
                         help="method, comma-separated methods, or 'all' (default: the "
-                             "config's, else kinematic_heuristic)")
+                             "config's, else the daemon's default)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,6 +17,15 @@ where ``SPEC = Spec("my_method", "my_package.my_method", wire_id=130, family="my
 Entry points are read the first time a name is looked up; a broken or conflicting one is
 reported (a warning naming it) and left out, never loaded half-way.
 
+A method with some of its parameters set, for one run, is named ``METHOD:KEY=VALUE[:KEY=VALUE
+...]`` wherever a method name is taken (``slipd replay --estimator``, ``slipd eval``, ``slipd
+run``, the Python API): ``kinematic_heuristic:steady_gain=0`` is the paper's observer without
+slipd's steady-state hold, beside the default in the same replay
+(``--estimator kinematic_heuristic,kinematic_heuristic:steady_gain=0``); every departure from a
+paper is such a parameter, with the paper's value in the method's docstring. It is the method's
+Spec with the values added to its overrides (same module and wire ID, never fused by
+``ensemble``), made where it is looked up, so worker processes resolve it the same way.
+
 Importing this module compiles nothing: a method's module is imported by :func:`load`.
 """
 
@@ -172,8 +181,45 @@ def specs() -> dict[str, Spec]:
     return dict(_registry()[0])
 
 
+#: Separates a method's name from the parameter values set for a run (module docstring).
+PARAM_SEPARATOR = ":"
+
+
+def _with_values(name: str) -> Spec:
+    """The Spec of ``METHOD:KEY=VALUE[:...]``: METHOD's with the values added to its overrides;
+    a malformed item, an unknown key or a value that is not a number fails naming it."""
+    base_name, *items = name.split(PARAM_SEPARATOR)
+    base = spec(base_name.strip())
+    values: dict[str, float] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip() or not value.strip():
+            raise ConfigError(f"estimator {name!r}: {item!r} is not KEY=VALUE; expected "
+                              f"{base.name}:KEY=VALUE[:KEY=VALUE...], e.g. "
+                              f"{base.name}:min_speed=2")
+        try:
+            values[key.strip()] = float(value)
+        except ValueError:
+            raise ConfigError(f"estimator {name!r}: {key.strip()} = {value.strip()!r} is not a "
+                              "number") from None
+    derived = Spec(name, base.module, base.wire_id, base.family,
+                   {**base.overrides, **values}, False, base.summary)
+    try:
+        module = importlib.import_module(base.module)
+    except ImportError as exc:
+        raise ConfigError(f"estimator {name!r}: cannot import {base.module}: {exc}") from exc
+    try:
+        make_params(module, derived.overrides)  # an unknown key names the known ones
+    except ConfigError as exc:
+        raise ConfigError(f"estimator {name!r}: {exc}") from None
+    return derived
+
+
 def spec(name: str) -> Spec:
-    """The Spec of method ``name``; an unknown name names the available ones."""
+    """The Spec of method ``name`` (or ``METHOD:KEY=VALUE...``, module docstring); an unknown
+    name names the available ones."""
+    if PARAM_SEPARATOR in name:
+        return _with_values(name)
     known, broken = _registry()
     if name in known:
         return known[name]
