@@ -26,6 +26,9 @@ into ``--cache`` (default runs/accuracy) and reused; delete the folder to regene
 
     .venv/bin/python -m benchmarks.accuracy [--blocks suite,mismatch,variants,real,plants]
         [--estimator all|a,b] [--jobs 2] [--json OUT.json] [--cache DIR]
+
+A parameter is measured against its default by naming the method with it set beside the
+method: ``--estimator kinematic_heuristic,kinematic_heuristic:steady_gain=0``.
 """
 
 from __future__ import annotations
@@ -119,28 +122,34 @@ def _job(job: tuple) -> tuple[str, CaseResult, float]:
     return block, result, time.perf_counter() - started
 
 
-def _row(name: str, s: Scores, zero_rms: float) -> str:
+def _row(name: str, s: Scores, zero_rms: float, width: int = 22) -> str:
     def f(v: float, fmt: str, scale: float = 1.0) -> str:
         width = int(fmt.split(".")[0])
         return f"{'-':>{width}s}" if v is None or math.isnan(v) else format(v * scale, fmt)
 
     ratio = s.beta_rms_deg / zero_rms if zero_rms and not math.isnan(zero_rms) else math.nan
-    return (f"  {name:22s} {f(s.beta_rms_deg, '8.3f')} {f(s.beta_p99_deg, '8.3f')} "
+    return (f"  {name:{width}s} {f(s.beta_rms_deg, '8.3f')} {f(s.beta_p99_deg, '8.3f')} "
             f"{f(s.valid_fraction, '6.1f', 100)} {f(s.valid_err_over_5deg, '7.2f', 100)} "
             f"{f(s.valid_err_over_2deg, '7.2f', 100)} {f(s.sigma2_coverage, '7.1f', 100)} "
             f"{f(ratio, '6.2f')}")
 
 
+def _name_width(names) -> int:
+    """The name column's width: 22, or the longest name (``METHOD:KEY=VALUE`` ones are long)."""
+    return max([22, *(len(n) for n in names)])
+
+
 def print_block(title: str, rows: dict[str, Scores]) -> None:
+    width = _name_width(rows)
     print(f"== {title}")
-    print(f"  {'estimator':22s} {'rms':>8s} {'p99':>8s} {'valid':>6s} {'V>5deg':>7s} "
+    print(f"  {'estimator':{width}s} {'rms':>8s} {'p99':>8s} {'valid':>6s} {'V>5deg':>7s} "
           f"{'V>2deg':>7s} {'2sigcov':>7s} {'/zero':>6s}")
-    print(f"  {'':22s} {'[deg]':>8s} {'[deg]':>8s} {'[%]':>6s} {'[%]':>7s} {'[%]':>7s} "
+    print(f"  {'':{width}s} {'[deg]':>8s} {'[deg]':>8s} {'[%]':>6s} {'[%]':>7s} {'[%]':>7s} "
           f"{'[%]':>7s} {'':>6s}")
     zero = rows.get("zero")
     zero_rms = zero.beta_rms_deg if zero else math.nan
     for name, s in rows.items():
-        print(_row(name, s, zero_rms))
+        print(_row(name, s, zero_rms, width))
     print()
 
 
@@ -170,13 +179,14 @@ def print_summary(blocks: dict[str, dict], methods: list[str]) -> None:
             ("2-sigma coverage of VALID ticks [%]", "sigma2_coverage", 100.0, "9.1f")):
         print(f"== summary: {title}")
         labels = [n.replace("variant ", "").replace("suite ", "")[:9] for n in names]
-        print(f"  {'estimator':22s} " + " ".join(f"{label:>9s}" for label in labels))
+        width = _name_width(methods)
+        print(f"  {'estimator':{width}s} " + " ".join(f"{label:>9s}" for label in labels))
         for m in methods:
             cells = []
             for n in names:
                 v = blocks[n]["estimators"].get(m, {}).get(field)
                 cells.append(f"{'-':>9s}" if v is None else format(v * scale, fmt))
-            print(f"  {m:22s} " + " ".join(cells))
+            print(f"  {m:{width}s} " + " ".join(cells))
         print()
 
 
