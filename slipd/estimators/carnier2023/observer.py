@@ -40,7 +40,7 @@ import math
 import numpy as np
 
 from slipd.channels import G, Veh
-from slipd.estimators.common.filters import STRAIGHT_SETTLE, lowpass, noise_power
+from slipd.estimators.common.filters import lowpass, noise_power, straight_settled
 from slipd.estimators.common.inputs import ImuMemory, reset_imu
 from slipd.estimators.common.layout import build_layout
 from slipd.estimators.common.tyres import slip_angles, tanh_tyre
@@ -440,10 +440,8 @@ def _switch_noise(state, beta_dot, vx, yaw_rate, straight_yaw_rate, time_constan
     carry some real sideslip rate (mu_jump: 0.14 m/s^2 against 0.06 of the sensor alone), and
     a higher threshold keeps k_y at k_y,max through a low-grip curve, so the observer follows
     the high-grip model and the classifier sees less slip."""
-    straight = abs(yaw_rate) < straight_yaw_rate
-    state[S.STRAIGHT_TIME] = state[S.STRAIGHT_TIME] + dt if straight else 0.0
-    noise = noise_power(state, S.SWITCH_NOISE, beta_dot * vx,
-                        state[S.STRAIGHT_TIME] >= STRAIGHT_SETTLE, dt, time_constant)
+    settled = straight_settled(state, S.STRAIGHT_TIME, abs(yaw_rate) < straight_yaw_rate, dt)
+    noise = noise_power(state, S.SWITCH_NOISE, beta_dot * vx, settled, dt, time_constant)
     return math.sqrt(noise) / vx if math.isfinite(noise) else math.nan
 
 

@@ -76,6 +76,14 @@ STRAIGHT_SETTLE = 2.0
 
 
 @nb.njit(cache=True, inline="always")
+def straight_settled(buf, i, straight, dt):
+    """Whether the car has gone ``straight`` for ``STRAIGHT_SETTLE`` s: ``buf[i]`` counts the
+    seconds (0 at any tick that is not), the sampling condition of ``noise_power``."""
+    buf[i] = buf[i] + dt if straight else 0.0
+    return buf[i] >= STRAIGHT_SETTLE
+
+
+@nb.njit(cache=True, inline="always")
 def noise_power(buf, i, signal, sampling, dt, time_constant):
     """The mean square of ``signal`` averaged (``lowpass``, ``time_constant``) over the ticks
     where ``sampling`` says its true value is ~0 (going straight: what is left is the sensors'

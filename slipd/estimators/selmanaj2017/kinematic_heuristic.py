@@ -127,10 +127,10 @@ from slipd.channels import (
     Veh,
 )
 from slipd.estimators.common.filters import (
-    STRAIGHT_SETTLE,
     derivative_filter,
     gaussian_bell,
     noise_power,
+    straight_settled,
 )
 from slipd.estimators.common.inputs import (
     LEARNT_OFFSETS,
@@ -358,16 +358,6 @@ def straight_heuristic(f_gain, yaw_rate, yaw_acc, steer_wheel, steer_wheel_rate,
 
 
 @nb.njit(cache=True, inline="always")
-def _noise_sampling(state, params, yaw_rate, vx_meas, have_vx, dt):
-    """Whether this tick's bell signals are noise: moving, |omega_z| below
-    ``noise_straight_yaw_rate`` for ``filters.STRAIGHT_SETTLE`` s."""
-    straight = (have_vx and vx_meas > params[PARAMS.MIN_SPEED]
-                and abs(yaw_rate) < params[PARAMS.NOISE_STRAIGHT_YAW_RATE])  # fmt: skip
-    state[S.STRAIGHT_TIME] = state[S.STRAIGHT_TIME] + dt if straight else 0.0
-    return state[S.STRAIGHT_TIME] >= STRAIGHT_SETTLE
-
-
-@nb.njit(cache=True, inline="always")
 def _heuristic(state, params, steer_wheel, yaw_rate, yaw_acc, ay, vx_meas, dt):
     """Eq. 6-7 with their derivative filters; returns F (1/s), also kept in state[F]."""
     cutoff = params[PARAMS.DERIVATIVE_CUTOFF_HZ]
@@ -391,17 +381,20 @@ def _heuristic(state, params, steer_wheel, yaw_rate, yaw_acc, ay, vx_meas, dt):
 
 
 @nb.njit(cache=True, inline="always")
-def _jerk_width(state, params, residual_rate, sampling, dt):
+def _jerk_width(state, params, residual_rate, yaw_rate, moving, dt):
     """The steady detector's jerk-bell width by the paper's rule for its bells (section 2.1:
     wider than the noise of the signal), applied online: max(``sigma_steady_jerk``,
-    ``steady_jerk_noise_width`` x the RMS of d/dt (Ay - omega_z Vx) on straights). The one
+    ``steady_jerk_noise_width`` x the RMS of d/dt (Ay - omega_z Vx) on straights: moving,
+    |omega_z| below ``noise_straight_yaw_rate`` for ``filters.STRAIGHT_SETTLE`` s). The one
     bell on an accelerometer signal: a raw IMU's body vibration reaches it, not the gyro's
     and the steering's (their signals on straights are driving as much as noise)."""
     multiple = params[PARAMS.STEADY_JERK_NOISE_WIDTH]
     sigma = params[PARAMS.SIGMA_STEADY_JERK]
     if not multiple > 0.0:
         return sigma
-    power = noise_power(state, S.JERK_NOISE, residual_rate, sampling, dt,
+    straight = moving and abs(yaw_rate) < params[PARAMS.NOISE_STRAIGHT_YAW_RATE]
+    power = noise_power(state, S.JERK_NOISE, residual_rate,
+                        straight_settled(state, S.STRAIGHT_TIME, straight, dt), dt,
                         params[PARAMS.NOISE_TIME_CONSTANT])  # fmt: skip
     if not math.isfinite(power):
         return sigma
@@ -409,8 +402,7 @@ def _jerk_width(state, params, residual_rate, sampling, dt):
 
 
 @nb.njit(cache=True, inline="always")
-def _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx, sampling,
-                 dt):  # fmt: skip
+def _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx, dt):
     """Extension (module docstring): the steady indicator S, the steady-state ay bias it
     learns, and the share of the open-loop integrand it holds. Returns hold (0 = the paper).
 
@@ -428,11 +420,12 @@ def _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx,
     countersteer = 0.0
     if params[PARAMS.STEADY_COUNTERSTEER] > 0.0 and steer_wheel * yaw_rate < 0.0:
         countersteer = steer_wheel
+    moving = have_vx and vx_meas > params[PARAMS.MIN_SPEED]
     steady_now = gaussian_bell(
         yaw_acc_slow, params[PARAMS.SIGMA_STEADY_YAW_ACC],
         steer_rate_slow, params[PARAMS.SIGMA_STEADY_STEER_RATE],
     ) * gaussian_bell(
-        residual_rate, _jerk_width(state, params, residual_rate, sampling, dt),
+        residual_rate, _jerk_width(state, params, residual_rate, yaw_rate, moving, dt),
         countersteer, params[PARAMS.SIGMA_STEER],
     )  # fmt: skip
     if not math.isfinite(steady_now) or not have_vx or vx_meas < params[PARAMS.MIN_SPEED]:
@@ -554,10 +547,8 @@ def step(state, u, params, vehicle, dt, out):
     steer_wheel = steer * vehicle[Veh.STEER_RATIO]
     ay_raw = ay
     ay = ay - state[S.STEADY_BIAS]  # extension: steady-state ay bias (0 when off)
-    sampling = _noise_sampling(state, params, yaw_rate, vx_meas, have_vx, dt)
     f_heuristic = _heuristic(state, params, steer_wheel, yaw_rate, yaw_acc, ay, vx_meas, dt)
-    hold = _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx,
-                        sampling, dt)  # fmt: skip
+    hold = _steady_hold(state, params, ay_raw, yaw_rate, vx_meas, steer_wheel, have_vx, dt)
 
     # --- observer (eq. 5), forward Euler at the tick rate ------------------------------
     vx_dot, vy_dot, gain_x = observer_derivatives(
