@@ -205,11 +205,7 @@ def _with_values(name: str) -> Spec:
     derived = Spec(name, base.module, base.wire_id, base.family,
                    {**base.overrides, **values}, False, base.summary)
     try:
-        module = importlib.import_module(base.module)
-    except ImportError as exc:
-        raise ConfigError(f"estimator {name!r}: cannot import {base.module}: {exc}") from exc
-    try:
-        make_params(module, derived.overrides)  # an unknown key names the known ones
+        make_params(_module(derived), derived.overrides)  # an unknown key names the known ones
     except ConfigError as exc:
         raise ConfigError(f"estimator {name!r}: {exc}") from None
     return derived
@@ -319,12 +315,18 @@ def make_params(module: ModuleType, overrides: Mapping[str, float] | None = None
     return params
 
 
+def _module(entry: Spec) -> ModuleType:
+    """The module implementing ``entry``; one that cannot be imported is a ConfigError."""
+    try:
+        return importlib.import_module(entry.module)
+    except ImportError as exc:
+        raise ConfigError(f"estimator {entry.name!r}: cannot import {entry.module}: "
+                          f"{exc}") from exc
+
+
 def load(name: str, overrides: Mapping[str, float] | None = None) -> Method:
     """Method ``name`` with its defaults, the Spec's overrides, then ``overrides`` by name."""
     entry = spec(name)
-    try:
-        module = importlib.import_module(entry.module)
-    except ImportError as exc:
-        raise ConfigError(f"estimator {name!r}: cannot import {entry.module}: {exc}") from exc
+    module = _module(entry)
     params = make_params(module, {**entry.overrides, **(overrides or {})})
     return Method(entry, module, params)
