@@ -81,7 +81,8 @@ def single_track_ticks(
     half_f = 0.5 * vehicle[Veh.TRACK_F]
     half_r = 0.5 * vehicle[Veh.TRACK_R]
     for k in range(n):
-        vy_dot, r_dot, ay, *_ = rl.single_track(vy, r, speed, steer[k], vehicle)
+        vy_dot, r_dot, ay, *_ = rl.single_track(vy, r, speed, steer[k], vehicle,
+                                                vehicle[Veh.MU_NOMINAL])
         U[k, In.AY] = ay + ay_offset
         U[k, In.YAW_RATE] = r
         U[k, In.STEER] = steer[k]
@@ -179,7 +180,7 @@ def test_dynamic_ekf_matches_numpy_reference(case, vehicle):
     R = np.diag([4e-7, 6e-2])
     state = np.zeros(rl.LAYOUT.size)
     state[[S.DYN_VY, S.DYN_R, S.DYN_P, S.DYN_P + 1, S.DYN_P + 2]] = vy, r, p11, p12, p22
-    rl.dynamic_predict(state, vx, steer, vehicle, q[0], q[1], DT)
+    rl.dynamic_predict(state, vx, steer, vehicle, vehicle[Veh.MU_NOMINAL], q[0], q[1], DT)
     x = np.array([vy, r])
     P = np.array([[p11, p12], [p12, p22]])
     f, J, _, _ = ref_model(x, vx, steer, vehicle)
@@ -187,7 +188,8 @@ def test_dynamic_ekf_matches_numpy_reference(case, vehicle):
     np.testing.assert_allclose(state[[S.DYN_VY, S.DYN_R]], x, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(sym(state, S.DYN_P), P, rtol=1e-12, atol=1e-18)
 
-    rl.dynamic_update(state, r_meas, True, ay_meas, True, vx, steer, vehicle, R[0, 0], R[1, 1])
+    rl.dynamic_update(state, r_meas, True, ay_meas, True, vx, steer, vehicle,
+                      vehicle[Veh.MU_NOMINAL], R[0, 0], R[1, 1])
     _, _, h, H = ref_model(x, vx, steer, vehicle)
     x, P = ref_update(x, P, np.array([r_meas, ay_meas]), h, H, R)
     np.testing.assert_allclose(state[[S.DYN_VY, S.DYN_R]], x, rtol=1e-12, atol=1e-15)
@@ -197,7 +199,8 @@ def test_dynamic_ekf_matches_numpy_reference(case, vehicle):
 def test_dynamic_update_without_ay_is_the_scalar_yaw_rate_update(vehicle):
     state = np.zeros(rl.LAYOUT.size)
     state[[S.DYN_VY, S.DYN_R, S.DYN_P, S.DYN_P + 1, S.DYN_P + 2]] = 0.3, 0.2, 2e-3, 1e-4, 5e-4
-    rl.dynamic_update(state, 0.25, True, 99.0, False, 15.0, 0.03, vehicle, 4e-7, 6e-2)
+    rl.dynamic_update(state, 0.25, True, 99.0, False, 15.0, 0.03, vehicle, vehicle[Veh.MU_NOMINAL],
+                      4e-7, 6e-2)
     x = np.array([0.3, 0.2])
     P = np.array([[2e-3, 1e-4], [1e-4, 5e-4]])
     x, P = ref_update(x, P, np.array([0.25]), np.array([0.2]), np.array([[0.0, 1.0]]),
@@ -232,12 +235,13 @@ def test_kinematic_kf_matches_numpy_reference(with_vy):
 @pytest.mark.parametrize("case", RANDOM_CASES)
 def test_single_track_jacobian_matches_finite_differences(case, vehicle):
     vy, r, vx, steer = case[:4]
-    _, _, _, j11, j12, j21, j22 = rl.single_track(vy, r, vx, steer, vehicle)
+    mu = vehicle[Veh.MU_NOMINAL]
+    _, _, _, j11, j12, j21, j22 = rl.single_track(vy, r, vx, steer, vehicle, mu)
     eps = 1e-6
     numeric = np.zeros((3, 2))
     for col, (dvy, dr) in enumerate(((eps, 0.0), (0.0, eps))):
-        plus = rl.single_track(vy + dvy, r + dr, vx, steer, vehicle)[:3]
-        minus = rl.single_track(vy - dvy, r - dr, vx, steer, vehicle)[:3]
+        plus = rl.single_track(vy + dvy, r + dr, vx, steer, vehicle, mu)[:3]
+        minus = rl.single_track(vy - dvy, r - dr, vx, steer, vehicle, mu)[:3]
         numeric[:, col] = (np.array(plus) - np.array(minus)) / (2 * eps)
     analytic = np.array([[j11, j12], [j21, j22], [j11, j12 + vx]])  # last row: d ay / d x
     np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-6)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slipd.channels import Veh
 from slipd.estimators.righetti_lenzo2025 import filters as rl
 from slipd.estimators.righetti_lenzo2025.filters import S
 from slipd.numba_cache import nb
@@ -45,9 +46,10 @@ def step(state, u, params, vehicle, dt, out):
     The kinematic slots of the state hold vx_meas (KIN_VX) and are otherwise unused.
     """
     p0_r = params[PARAMS.P0_R]
+    mu = vehicle[Veh.MU_NOMINAL]  # eq. 7 at the profile's peak friction (the paper's)
     # a priori (eq. 8) with u_dyn = [vx_meas, delta] of tick k-1
     ax, ay, yaw_rate, steer, ay_ok, yaw_rate_ok, running, status = rl.begin_dynamic_tick(
-        state, u, params, vehicle, dt
+        state, u, params, vehicle, mu, dt
     )
     vx_meas, vx_ok, status = rl.measured_speed(u, steer, yaw_rate, vehicle, status)
     if not running:
@@ -62,12 +64,12 @@ def step(state, u, params, vehicle, dt, out):
         return
     # a posteriori with y = [r, ay] (eq. 9) at tick k's speed
     nis, dof = rl.dynamic_update(
-        state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx_meas, steer, vehicle,
+        state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx_meas, steer, vehicle, mu,
         params[PARAMS.R_YAW_RATE_DYN], params[PARAMS.R_AY_DYN],
     )  # fmt: skip
     rl.record_innovations(state, nis, dof, params, dt)
     if not ay_ok:
-        ay = rl.single_track(state[S.DYN_VY], state[S.DYN_R], vx_meas, steer, vehicle)[2]
+        ay = rl.single_track(state[S.DYN_VY], state[S.DYN_R], vx_meas, steer, vehicle, mu)[2]
     state[S.KIN_VX] = vx_meas
     state[S.KIN_VY] = state[S.DYN_VY]
     state[S.PREV_VX] = vx_meas

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slipd.channels import Veh
 from slipd.estimators.common.kalman import per_step
 from slipd.estimators.righetti_lenzo2025 import filters as rl
 from slipd.estimators.righetti_lenzo2025.filters import S
@@ -56,9 +57,10 @@ def step(state, u, params, vehicle, dt, out):
     p0_r = params[PARAMS.P0_R]
     p0_vx = params[PARAMS.P0_VX]
     nominal_dt = params[PARAMS.NOMINAL_DT]
+    mu = vehicle[Veh.MU_NOMINAL]  # eq. 7 at the profile's peak friction (the paper's)
     # 1. dynamic EKF, a priori (eq. 8) with u_dyn = [vx_kin, delta] of tick k-1
     ax, ay, yaw_rate, steer, ay_ok, yaw_rate_ok, running, status = rl.begin_dynamic_tick(
-        state, u, params, vehicle, dt
+        state, u, params, vehicle, mu, dt
     )
     vx_meas, vx_ok, status = rl.measured_speed(u, steer, yaw_rate, vehicle, status)
     if not running:
@@ -66,14 +68,15 @@ def step(state, u, params, vehicle, dt, out):
         return
     # 1. dynamic EKF, a posteriori with y = [r, ay] (eq. 9); speed input: vx_kin of k-1
     nis, dof = rl.dynamic_update(
-        state, yaw_rate, yaw_rate_ok, ay, ay_ok, state[S.PREV_VX], steer, vehicle,
+        state, yaw_rate, yaw_rate_ok, ay, ay_ok, state[S.PREV_VX], steer, vehicle, mu,
         params[PARAMS.R_YAW_RATE_DYN], params[PARAMS.R_AY_DYN],
     )  # fmt: skip
     # the innovation test is the dynamic EKF's: the kinematic KF's pseudo-measurement is the
     # dynamic vy itself, its innovations say nothing about the model
     rl.record_innovations(state, nis, dof, params, dt)
     if not ay_ok:
-        ay = rl.single_track(state[S.DYN_VY], state[S.DYN_R], state[S.PREV_VX], steer, vehicle)[2]
+        ay = rl.single_track(state[S.DYN_VY], state[S.DYN_R], state[S.PREV_VX], steer, vehicle,
+                             mu)[2]
     p_vy_dyn = state[_DYN_P_VV]
     # 2. kinematic KF, a priori (eq. 13) with [ax, ay, r] of tick k-1, Q_kin of eq. 29
     rl.kinematic_predict(

@@ -70,8 +70,9 @@ from slipd.estimators.common.tyres import slip_angles, tanh_tyre
 from slipd.estimators.common.vehicle import require_vehicle
 from slipd.numba_cache import nb
 
-LAYOUT = build_layout(
-    "righetti_lenzo2025",
+#: The fields of the state all three methods share (``LAYOUT``), for a method that appends
+#: its own block to them (so these slots sit where ``S`` says in both layouts).
+FIELDS = (
     # dynamic EKF (eq. 3): lateral velocity [m/s], yaw rate [rad/s], P_dyn packed
     "DYN_VY", "DYN_R", ("DYN_P", 3),
     # kinematic KF (eq. 12): longitudinal, lateral velocity [m/s], P_kin packed
@@ -88,6 +89,7 @@ LAYOUT = build_layout(
     "NIS_MEAN",  # the innovation test: NIS per measurement, averaged (common.kalman)
     ("SCRATCH", 4),  # working memory of the covariance predict
 )  # fmt: skip
+LAYOUT = build_layout("righetti_lenzo2025", *FIELDS)
 S = LAYOUT.S
 _DYN_VY = int(S.DYN_VY)
 _DYN_P = int(S.DYN_P)
@@ -147,8 +149,9 @@ HELD_SPEED_FLOOR = 0.1
 
 
 @nb.njit(cache=True, _nrt=False)
-def single_track(vy, r, vx, steer, vehicle):
-    """The nonlinear single-track model (eq. 1, 2, 7) and its Jacobians.
+def single_track(vy, r, vx, steer, vehicle, mu):
+    """The nonlinear single-track model (eq. 1, 2, 7) and its Jacobians, at the tyre-road
+    friction ``mu`` of eq. 7 (the profile's peak friction in the paper).
 
     Returns (vy_dot, r_dot, ay_model, J11, J12, J21, J22) where J = d(vy_dot, r_dot)/d(vy, r) and
     ay_model = (Fyf cos(delta) + Fyr) / m is the measurement of eq. 9, whose Jacobian row is
@@ -160,7 +163,7 @@ def single_track(vy, r, vx, steer, vehicle):
     lf = vehicle[Veh.LF]
     lr = vehicle[Veh.LR]
     # static axle loads, Sec. 2.1 (F_zf = m g b / l, F_zr = m g a / l), times mu
-    mu_weight_per_length = vehicle[Veh.MU_NOMINAL] * vehicle[Veh.MASS] * G / (lf + lr)
+    mu_weight_per_length = mu * vehicle[Veh.MASS] * G / (lf + lr)
     mu_fz_front = mu_weight_per_length * lr
     mu_fz_rear = mu_weight_per_length * lf
     # slip angles (Sec. 3.2) and their partial derivatives
@@ -185,12 +188,12 @@ def single_track(vy, r, vx, steer, vehicle):
 
 
 @nb.njit(cache=True, _nrt=False)
-def dynamic_predict(state, vx, steer, vehicle, q_vy, q_r, dt):
+def dynamic_predict(state, vx, steer, vehicle, mu, q_vy, q_r, dt):
     """A priori step of the dynamic EKF (eq. 8): x^- = x + f(x, u) dt, P^- = F P F' + Q_dyn
-    (Q per step)."""
+    (Q per step), at friction ``mu``."""
     vy = state[S.DYN_VY]
     r = state[S.DYN_R]
-    vy_dot, r_dot, _, j11, j12, j21, j22 = single_track(vy, r, vx, steer, vehicle)
+    vy_dot, r_dot, _, j11, j12, j21, j22 = single_track(vy, r, vx, steer, vehicle, mu)
     state[S.DYN_VY] = vy + vy_dot * dt
     state[S.DYN_R] = r + r_dot * dt
     # F = I + J dt (the Jacobian of the Euler map eq. 8)
@@ -199,13 +202,14 @@ def dynamic_predict(state, vx, steer, vehicle, q_vy, q_r, dt):
 
 
 @nb.njit(cache=True, _nrt=False)
-def dynamic_update(state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx, steer, vehicle, r_r, r_ay):
-    """A posteriori step of the dynamic EKF with y = [r_meas, ay_meas] (eq. 9).
+def dynamic_update(state, yaw_rate, yaw_rate_ok, ay, ay_ok, vx, steer, vehicle, mu, r_r, r_ay):
+    """A posteriori step of the dynamic EKF with y = [r_meas, ay_meas] (eq. 9), at friction
+    ``mu``.
 
     A measurement flagged not ok is left out (its H row and innovation zeroed). Returns the
     normalised innovation squared and the number of measurements used."""
     _, _, ay_model, j11, j12, _, _ = single_track(state[S.DYN_VY], state[S.DYN_R], vx, steer,
-                                                  vehicle)  # fmt: skip
+                                                  vehicle, mu)  # fmt: skip
     # H = d h / d x: row 1 picks r, row 2 is d ay_model / d(vy, r) = [J11, J12 + vx]
     h11, h12, inn1, r1 = optional_row(yaw_rate_ok, 0.0, 1.0, yaw_rate - state[S.DYN_R], r_r)
     h21, h22, inn2, r2 = optional_row(ay_ok, j11, j12 + vx, ay - ay_model, r_ay)
@@ -305,16 +309,17 @@ def begin_tick(state, u, params, vehicle, dt):
 
 
 @nb.njit(cache=True, inline="always")
-def begin_dynamic_tick(state, u, params, vehicle, dt):
+def begin_dynamic_tick(state, u, params, vehicle, mu, dt):
     """``begin_tick``, then, while the filters run, the dynamic EKF's a priori step (eq. 8)
-    with u_dyn = [vx, delta] of tick k-1 and eq. 28's Q (``params`` laid out as DYNAMIC's);
-    the model's yaw rate stands in for an invalid gyro. Returns what ``begin_tick`` does."""
+    with u_dyn = [vx, delta] of tick k-1, eq. 28's Q (``params`` laid out as DYNAMIC's) and
+    friction ``mu``; the model's yaw rate stands in for an invalid gyro. Returns what
+    ``begin_tick`` does."""
     ax, ay, yaw_rate, steer, ay_ok, yaw_rate_ok, running, status = begin_tick(
         state, u, params, vehicle, dt
     )
     if running:
         nominal_dt = params[DYNAMIC.NOMINAL_DT]
-        dynamic_predict(state, state[S.PREV_VX], state[S.PREV_STEER], vehicle,
+        dynamic_predict(state, state[S.PREV_VX], state[S.PREV_STEER], vehicle, mu,
                         per_step(params[DYNAMIC.Q_VY_DYN], dt, nominal_dt),
                         per_step(params[DYNAMIC.Q_R_DYN], dt, nominal_dt), dt)
         if not yaw_rate_ok:
