@@ -99,7 +99,10 @@ SIGMAS_DEG = [0.1, 0.2, 0.3, 0.5, 1.0, 2.0, 0.15]
 
 
 def test_weights_converge_to_inverse_variance_weights(vehicle):
-    params = registry.make_params(ens, {"time_constant": 30.0})
+    # w'Pw alone: members with independent white errors spread about the result by about
+    # their own sigma each tick, which the spread floor would report (it is meant for members
+    # that part ways, test_members_parting_ways_widen_sigma_and_unsettle_the_fusion)
+    params = registry.make_params(ens, {"time_constant": 30.0, "spread_floor": 0.0})
     n = 40000
     W, fused_err, member_err, out = synthetic_run(SIGMAS_DEG, n, params, vehicle)
     floor = params[FUSION_PARAMS.SIGMA_FLOOR] ** 2
@@ -177,6 +180,39 @@ def test_a_member_that_goes_bad_loses_its_weight(vehicle):
     # a 3 deg bias of the once-best member ends up below 0.1 deg in the fused estimate
     assert np.degrees(np.abs(fused_err[k_bad + 3 * tau_ticks :]).mean()) < 0.1
     assert np.allclose(W.sum(axis=1), 1.0)
+
+
+def test_members_parting_ways_widen_sigma_and_unsettle_the_fusion(vehicle):
+    """A drift's onset: members that agreed for seconds part by degrees within a tick (each
+    lags the slip by its own amount). The difference moments still remember the agreement, so
+    w'Pw alone claims a small sigma; with ``spread_floor`` the fused sigma covers the members'
+    weighted spread about the result and, above ``converged_sigma_beta``, the fusion says
+    NOT_CONVERGED (so supervision does not send it VALID)."""
+    u = all_valid_u()
+    results = {}
+    for name, overrides in (("default", {}),
+                            ("w'Pw alone", {"spread_floor": 0.0, "converged_sigma_beta": 0.0})):
+        params = registry.make_params(ens, overrides)
+        state = ens.init(params, vehicle)
+        out = np.zeros(N_OUT)
+        rng = np.random.default_rng(4)
+        for _ in range(300):  # 3 s of agreement within 0.05 deg
+            for m in range(N_MEMBERS):
+                set_member(state, m, math.radians(-2.0 + rng.normal(0.0, 0.05)))
+            ens.fuse_tick(state, u, params, DT, out)
+        assert not int(out[Out.STATUS]) & ST_NOT_CONVERGED
+        parted = np.radians([-5.0, -9.0, -6.0, -12.0, -8.0, -4.0, -10.0])
+        for m in range(N_MEMBERS):
+            set_member(state, m, parted[m])
+        ens.fuse_tick(state, u, params, DT, out)
+        w = weights(state)
+        spread = math.sqrt(float(np.sum(w * (parted - out[Out.BETA]) ** 2)))
+        results[name] = (out[Out.SIGMA_BETA], spread, int(out[Out.STATUS]))
+    sigma, spread, status = results["default"]
+    assert spread > math.radians(1.0) and sigma >= spread * (1 - 1e-12)
+    assert status & ST_NOT_CONVERGED
+    sigma, spread, status = results["w'Pw alone"]
+    assert sigma < 0.5 * spread and not status & ST_NOT_CONVERGED
 
 
 @pytest.mark.parametrize(

@@ -42,7 +42,13 @@ def test_replay_csv_is_plain_and_pandas_reads_it_with_defaults(drive, tmp_path):
         assert np.allclose(rows["beta_deg"], np.degrees(engine[m].out[:, 0]), atol=6e-6)
         assert np.array_equal(rows["status"], engine[m].out[:, 8].astype(int))
         assert np.allclose(rows["t"], engine[m].t, atol=1e-6, rtol=0)
-    assert table["mu"].isna().all()  # not estimated: empty cells read as NaN
+    # zero estimates no friction and d_ekf reports its only once its estimator has settled:
+    # empty cells read as NaN
+    for m in METHODS:
+        mu = table[table["estimator"] == m]["mu"].to_numpy()
+        assert np.allclose(mu, engine[m].out[:, 4], atol=1e-6, equal_nan=True)
+    assert table[table["estimator"] == "zero"]["mu"].isna().all()
+    assert table["mu"].isna().any()
     meta = json.loads((tmp_path / "est.csv.meta.json").read_text())
     assert meta["columns"]["beta_deg"]["unit"] == "deg" and meta["estimators"] == METHODS
     assert "VALID" in meta["columns"]["status"]["description"]

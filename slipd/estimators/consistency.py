@@ -30,9 +30,11 @@ ways (DESIGN.md, "What VALID means"):
   alpha = (mu Fz / C) atanh(x), d ln(alpha) / d ln(C) = -1 and d ln(alpha) / d ln(mu) =
   1 - x / ((1 - x^2) atanh(x)); the linear witness has no mu and underestimates alpha by
   atanh(x) / x - 1 there. So sigma_D = alpha_r (C_REL_UNCERTAINTY + the friction or the
-  linear term) + ``WITNESS_FLOOR``. On a road well below the profile's friction the witness
-  does not know it is wrong: a correct kinematic estimate then loses VALID (availability,
-  never honesty, pays), and a dynamic method wrong with it is left to the kinematic witness.
+  linear term) + ``WITNESS_FLOOR``. The witness's tyre model takes the friction d_ekf reads
+  from the wheels' slip (its ``slip_friction``); its scale is computed at the profile's. On a
+  road well below the profile's friction where no wheel has slipped yet, the witness does not
+  know it is wrong: a correct kinematic estimate then loses VALID (availability, never
+  honesty, pays), and a dynamic method wrong with it is left to the kinematic witness.
 
 * the **innovation test** of a method with a Kalman filter (its ``Out.NIS``: the normalised
   innovation squared per measurement, averaged over ~1 s; Bar-Shalom et al. 2001 Sec. 5.4.2),

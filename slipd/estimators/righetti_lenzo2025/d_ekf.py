@@ -6,6 +6,26 @@ Its speed input and output vx is not estimated but computed from the corner velo
 (eq. 5-6: "For the D-EKF, vx is not an output of the extended Kalman filter, but it is computed
 from Equation (5)"). beta = atan2(vy, vx_meas) (eq. 4).
 
+Friction (slipd, ``slip_friction``; 0 = the paper's): eq. 7 takes the profile's peak friction,
+which on a low-friction road puts the model's saturation three times too high: the filter then
+reads a saturated axle as a linear one and bends vy to explain the measurements (snow_drift,
+mu 0.3: 4.0 deg RMS). With ``slip_friction`` = 1 (the default) eq. 7's mu is the friction
+estimate of ``hybrid_friction`` (Carnier, Corno, Savaresi 2023: the slip-based classifier of
+its Sec. 3 on wheel slip against traction force, which re-initialises the adaptive law of its
+eq. 14-15), run beside the filter on the same inputs, its state nested in this one
+(``FRICTION``) and its params under ``friction__<field>``. Why that signal and not one of the
+EKF's own: with only r and ay measured, a lower friction explains a road bank or an
+accelerometer offset as well as a slippery road, and both a third EKF state and a bank of
+fixed-friction filters (MMAE) ran away on the banked road and the j-turn (figures in
+benchmarks/MEASUREMENTS.md); the classifier's evidence is the wheels' slip, which no bank or
+ay offset produces. Measured (benchmarks.accuracy): snow_drift 3.99 / 3.96 -> 1.88 / 2.01 deg
+(seeds 0 / 1), mu_jump 0.95 / 0.96 -> 0.72 / 0.36, j_turn 1.33 -> 0.74 (seed 0; seed 1's
+classifier stays at the profile's friction there), every other log of the suite, the sensor
+variants, the other cars and the real run unchanged. Not given to dk_ekf: its kinematic KF,
+fed the dynamic vy as pseudo-measurement, followed a wrong low-friction vy on vehicle 3's snow
+drift (2.5 -> 9.9 deg). Out.MU and FRICTION_CLASS report the friction used while its
+estimator is converged (NaN and 0 otherwise, and always with ``slip_friction`` = 0).
+
 Parameters: Q_D = Q_dyn, R_D = R_dyn of eq. 28 (Sec. 4: "The D-EKF covariance matrices are set
 equal to the ones in (28)"); the initial covariance, speed floor, yaw-acceleration filter and
 convergence rule are slipd's own (the paper gives none), as are the pre-processing blocks
@@ -15,28 +35,93 @@ variance and the vx measurement variance (R_VX, the r_vx of eq. 29, as the speed
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from slipd.channels import Veh
+from slipd.channels import N_OUT, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, Out, Veh
+from slipd.errors import ConfigError
+from slipd.estimators.carnier2023 import hybrid_friction
+from slipd.estimators.common.layout import build_layout
 from slipd.estimators.righetti_lenzo2025 import filters as rl
 from slipd.estimators.righetti_lenzo2025.filters import S
 from slipd.numba_cache import nb
 
-#: The state layout all three methods share (filters.LAYOUT).
-LAYOUT = rl.LAYOUT
+#: The family's state (filters.FIELDS, at the same slots) and the friction estimator's.
+LAYOUT = build_layout(
+    "righetti_lenzo2025_d_ekf",
+    *rl.FIELDS,
+    ("FRICTION", hybrid_friction.LAYOUT),  # hybrid_friction's state (slip_friction)
+    ("FRICTION_OUT", N_OUT),  # hybrid_friction's outputs of the tick
+)  # fmt: skip
+_FRICTION = int(LAYOUT.S.FRICTION)
+_FRICTION_END = _FRICTION + hybrid_friction.LAYOUT.size
+_FRICTION_OUT = int(LAYOUT.S.FRICTION_OUT)
 
+#: the friction estimator's params, ``friction__<field>`` (defaults: hybrid_friction's)
+_FRICTION_FIELDS = tuple(
+    (f"FRICTION__{field.name}", float(hybrid_friction.DEFAULTS[field.name.lower()]))
+    for field in hybrid_friction.PARAMS
+)
 PARAMS, DEFAULTS = rl.shared_params(
     "d_ekf",
     ("R_VX", 2e-3),  # (m/s)^2, variance of vx_meas for sigma_beta only (r_vx of eq. 29)
     rl.P0_R,
+    ("SLIP_FRICTION", 1.0),  # 1: eq. 7's mu from hybrid_friction's estimate (slipd), 0: profile's
+    *_FRICTION_FIELDS,
     dynamic=True,  # eq. 28, as the DK-EKF's
 )  # fmt: skip
 _DYN_P_VV = int(S.DYN_P)
+_FRICTION_PARAMS = int(PARAMS[_FRICTION_FIELDS[0][0]])
+_FRICTION_PARAMS_END = _FRICTION_PARAMS + len(_FRICTION_FIELDS)
+#: the friction estimator's statuses under which its mu is not reported
+_FRICTION_UNSETTLED = ST_NOT_CONVERGED | ST_RESET | ST_INPUT_TIMEOUT
 
 
 def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
-    """A fresh state vector (``filters.LAYOUT``); the filter starts on the first speed sample."""
-    return rl.new_state(vehicle, "d_ekf")
+    """A fresh state vector (``LAYOUT``): the filter starts on the first speed sample; the
+    friction estimator's block is hybrid_friction's ``init`` with the ``friction__`` params
+    (left zero, and its vehicle data not required, with ``slip_friction`` = 0)."""
+    state = np.zeros(LAYOUT.size, dtype=np.float64)
+    state[: rl.LAYOUT.size] = rl.new_state(vehicle, "d_ekf")
+    state[_FRICTION_OUT : _FRICTION_OUT + N_OUT] = np.nan
+    if params[PARAMS.SLIP_FRICTION] > 0.5:
+        friction_params = np.array(params[_FRICTION_PARAMS:_FRICTION_PARAMS_END], dtype=np.float64)
+        try:
+            state[_FRICTION:_FRICTION_END] = hybrid_friction.init(friction_params, vehicle)
+        except ConfigError as exc:
+            raise ConfigError(f"d_ekf's friction estimator (slip_friction = 1): {exc}; or run "
+                              "d_ekf:slip_friction=0 at the profile's friction") from None
+    return state
+
+
+@nb.njit(cache=True, inline="always")
+def tyre_friction(state, u, params, vehicle, dt):
+    """eq. 7's mu for this tick: with ``slip_friction`` hybrid_friction's estimate after its
+    step on this tick's inputs (its last finite one while it has none), else the profile's."""
+    if params[PARAMS.SLIP_FRICTION] < 0.5:
+        return vehicle[Veh.MU_NOMINAL]
+    friction_out = state[_FRICTION_OUT : _FRICTION_OUT + N_OUT]
+    mu_before = friction_out[Out.MU]
+    hybrid_friction.step(state[_FRICTION:_FRICTION_END], u,
+                         params[_FRICTION_PARAMS:_FRICTION_PARAMS_END], vehicle, dt, friction_out)
+    mu = friction_out[Out.MU]
+    if math.isfinite(mu) and mu > 0.0:
+        return mu
+    if math.isfinite(mu_before) and mu_before > 0.0:
+        friction_out[Out.MU] = mu_before
+        return mu_before
+    return vehicle[Veh.MU_NOMINAL]
+
+
+@nb.njit(cache=True, inline="always")
+def report_friction(state, out):
+    """Out.MU and FRICTION_CLASS: the friction estimator's, while it is settled."""
+    friction_out = state[_FRICTION_OUT : _FRICTION_OUT + N_OUT]
+    status = friction_out[Out.STATUS]
+    if math.isfinite(status) and not (int(status) & _FRICTION_UNSETTLED):
+        out[Out.MU] = friction_out[Out.MU]
+        out[Out.FRICTION_CLASS] = friction_out[Out.FRICTION_CLASS]
 
 
 @nb.njit(cache=True, _nrt=False)
@@ -46,7 +131,7 @@ def step(state, u, params, vehicle, dt, out):
     The kinematic slots of the state hold vx_meas (KIN_VX) and are otherwise unused.
     """
     p0_r = params[PARAMS.P0_R]
-    mu = vehicle[Veh.MU_NOMINAL]  # eq. 7 at the profile's peak friction (the paper's)
+    mu = tyre_friction(state, u, params, vehicle, dt)
     # a priori (eq. 8) with u_dyn = [vx_meas, delta] of tick k-1
     ax, ay, yaw_rate, steer, ay_ok, yaw_rate_ok, running, status = rl.begin_dynamic_tick(
         state, u, params, vehicle, mu, dt
@@ -79,6 +164,7 @@ def step(state, u, params, vehicle, dt, out):
     if not was_reset:
         rl.write_estimate(state, out, vx_meas, state[S.DYN_VY], params[PARAMS.R_VX], 0.0,
                           state[_DYN_P_VV], ax, ay, yaw_rate, params, status)
+        report_friction(state, out)
 
 
 @nb.njit(cache=True, nogil=True, _nrt=False)

@@ -70,8 +70,8 @@ from slipd.estimators.common.tyres import slip_angles, tanh_tyre
 from slipd.estimators.common.vehicle import require_vehicle
 from slipd.numba_cache import nb
 
-#: The fields of the state all three methods share (``LAYOUT``), for a method that appends
-#: its own block to them (so these slots sit where ``S`` says in both layouts).
+#: The fields of the state all three methods share (``LAYOUT``); d_ekf appends its friction
+#: estimator's block to them (``d_ekf.LAYOUT``), so these slots sit where ``S`` says in both.
 FIELDS = (
     # dynamic EKF (eq. 3): lateral velocity [m/s], yaw rate [rad/s], P_dyn packed
     "DYN_VY", "DYN_R", ("DYN_P", 3),
@@ -151,7 +151,8 @@ HELD_SPEED_FLOOR = 0.1
 @nb.njit(cache=True, _nrt=False)
 def single_track(vy, r, vx, steer, vehicle, mu):
     """The nonlinear single-track model (eq. 1, 2, 7) and its Jacobians, at the tyre-road
-    friction ``mu`` of eq. 7 (the profile's peak friction in the paper).
+    friction ``mu`` of eq. 7 (the profile's peak friction in the paper; d_ekf's slip-based
+    estimate with its ``slip_friction``).
 
     Returns (vy_dot, r_dot, ay_model, J11, J12, J21, J22) where J = d(vy_dot, r_dot)/d(vy, r) and
     ay_model = (Fyf cos(delta) + Fyr) / m is the measurement of eq. 9, whose Jacobian row is
