@@ -96,7 +96,8 @@ BUILTIN: tuple[Spec, ...] = (
     _builtin("dk_ekf", "righetti_lenzo2025.dk_ekf", 2, "righetti_lenzo2025",
              "Righetti & Lenzo 2025: dynamic EKF feeding a kinematic KF", ensemble=True),
     _builtin("d_ekf", "righetti_lenzo2025.d_ekf", 3, "righetti_lenzo2025",
-             "Righetti & Lenzo 2025: the dynamic EKF alone", ensemble=True),
+             "Righetti & Lenzo 2025: the dynamic EKF alone, its tyre friction read from "
+             "wheel slip (Carnier 2023's classifier)", ensemble=True),
     _builtin("k_kf", "righetti_lenzo2025.k_kf", 4, "righetti_lenzo2025",
              "Righetti & Lenzo 2025: the kinematic KF alone", ensemble=True),
     _builtin("hybrid_friction", "carnier2023.hybrid_friction", 10, "carnier2023",
