@@ -53,10 +53,12 @@ LAYOUT = build_layout(
     *rl.FIELDS,
     ("FRICTION", hybrid_friction.LAYOUT),  # hybrid_friction's state (slip_friction)
     ("FRICTION_OUT", N_OUT),  # hybrid_friction's outputs of the tick
+    "TYRE_MU",  # eq. 7's friction: its last finite estimate (NaN before the first)
 )  # fmt: skip
 _FRICTION = int(LAYOUT.S.FRICTION)
 _FRICTION_END = _FRICTION + hybrid_friction.LAYOUT.size
 _FRICTION_OUT = int(LAYOUT.S.FRICTION_OUT)
+_TYRE_MU = int(LAYOUT.S.TYRE_MU)
 
 #: the friction estimator's params, ``friction__<field>`` (defaults: hybrid_friction's)
 _FRICTION_FIELDS = tuple(
@@ -85,6 +87,7 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
     state = np.zeros(LAYOUT.size, dtype=np.float64)
     state[: rl.LAYOUT.size] = rl.new_state(vehicle, "d_ekf")
     state[_FRICTION_OUT : _FRICTION_OUT + N_OUT] = np.nan
+    state[_TYRE_MU] = np.nan
     if params[PARAMS.SLIP_FRICTION] > 0.5:
         friction_params = np.array(params[_FRICTION_PARAMS:_FRICTION_PARAMS_END], dtype=np.float64)
         try:
@@ -98,20 +101,19 @@ def init(params: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
 @nb.njit(cache=True, inline="always")
 def tyre_friction(state, u, params, vehicle, dt):
     """eq. 7's mu for this tick: with ``slip_friction`` hybrid_friction's estimate after its
-    step on this tick's inputs (its last finite one while it has none), else the profile's."""
+    step on this tick's inputs (its last finite one while it has none, the profile's before
+    the first), else the profile's."""
     if params[PARAMS.SLIP_FRICTION] < 0.5:
         return vehicle[Veh.MU_NOMINAL]
     friction_out = state[_FRICTION_OUT : _FRICTION_OUT + N_OUT]
-    mu_before = friction_out[Out.MU]
     hybrid_friction.step(state[_FRICTION:_FRICTION_END], u,
                          params[_FRICTION_PARAMS:_FRICTION_PARAMS_END], vehicle, dt, friction_out)
     mu = friction_out[Out.MU]
     if math.isfinite(mu) and mu > 0.0:
-        return mu
-    if math.isfinite(mu_before) and mu_before > 0.0:
-        friction_out[Out.MU] = mu_before
-        return mu_before
-    return vehicle[Veh.MU_NOMINAL]
+        state[_TYRE_MU] = mu
+    elif not state[_TYRE_MU] > 0.0:
+        return vehicle[Veh.MU_NOMINAL]
+    return state[_TYRE_MU]
 
 
 @nb.njit(cache=True, inline="always")
