@@ -72,7 +72,9 @@ class Pipeline:
         self.step = self.method.step
         self.params = self.method.params
         self.monitor = monitor
-        witness = WITNESS_OF_WITNESS if method == WITNESS else WITNESS
+        # the witness's own method (any of its parameter values) is checked by the witness's
+        same_kernel = self.method.spec.module == registry.spec(WITNESS).module
+        witness = WITNESS_OF_WITNESS if same_kernel else WITNESS
         self.witness = registry.load(witness) if monitor else None
         self.monitor_params = consistency.default_params(witness == WITNESS_OF_WITNESS)
         #: what identifies a raw run of the method and of the witness (same kernel, same

@@ -174,11 +174,12 @@ def test_line_blocks_keep_a_ring_of_buffers_valid(codec_drives, tmp_path):
 
 
 def test_methods_sharing_a_witness_step_it_once(profile, codec_drives, monkeypatch):
-    """d_ekf is every other method's consistency witness and a method itself: one replay
-    steps it once per tick (RawRuns), and every method's rows are those of its own Pipeline
-    run alone."""
+    """The paper's d_ekf (``consistency.WITNESS``) is every other method's consistency witness
+    and a method itself: one replay steps it once per tick (RawRuns), and every method's rows
+    are those of its own Pipeline run alone."""
     log = codec_drives["mu_jump"].log
-    methods = ["kinematic_heuristic", "d_ekf", "zero", "k_kf"]
+    witness_name = "d_ekf:slip_friction=0"
+    methods = ["kinematic_heuristic", witness_name, "d_ekf", "zero", "k_kf"]
     inputs, outs = whole_run(log, profile, methods)
     runs = []
     original = Pipeline._run_method
@@ -190,14 +191,15 @@ def test_methods_sharing_a_witness_step_it_once(profile, codec_drives, monkeypat
         streamed = np.concatenate([c.outputs[m] for c in chunks])
         assert np.array_equal(streamed, outs[m], equal_nan=True), m
     ticked = [c for c in chunks if len(c.inputs.t)]
-    # per chunk: the four methods, d_ekf (shared with its role as the witness) and linear_kf
-    # (d_ekf's own witness): 5 runs, not 4 + 4 witnesses
-    assert sorted(runs) == sorted(["kinematic_heuristic", "d_ekf", "zero", "k_kf",
+    # per chunk: the five methods, the witness shared with its run as a method, and linear_kf
+    # (the witness of both d_ekf's) once: 6 runs, not 5 + 5 witnesses
+    assert sorted(runs) == sorted(["kinematic_heuristic", witness_name, "d_ekf", "zero", "k_kf",
                                    "linear_kf"] * len(ticked))
-    # d_ekf with other params is not the witness
+    # d_ekf with other params (the default's own friction estimate among them) is not it
     witness = Pipeline("kinematic_heuristic", profile).witness_key
-    assert Pipeline("d_ekf", profile).method_key == witness
-    assert Pipeline("d_ekf", profile, {"r_vx": 3e-3}).method_key != witness
+    assert Pipeline(witness_name, profile).method_key == witness
+    assert Pipeline("d_ekf", profile).method_key != witness
+    assert Pipeline(witness_name, profile, {"r_vx": 3e-3}).method_key != witness
 
 
 def test_one_replay_thread_runs_every_stage_in_the_caller(codec_drives, profile,

@@ -35,8 +35,11 @@ FAMILY = tuple(_FAMILIES.index(spec.family) for spec in _SPECS)
 #: A member's status bits that take it out of the fusion this tick.
 EXCLUDING = ST_UNAVAILABLE | ST_INPUT_TIMEOUT | ST_NOT_CONVERGED | ST_RESET
 #: The member whose raw output is the dynamic witness of the others' consistency monitors
-#: (consistency.WITNESS, as in the pipeline); it has none of its own inside the ensemble.
-WITNESS_MEMBER = MEMBERS.index(consistency.WITNESS)
+#: (off by default: ``member_monitor``): the d_ekf member, consistency.WITNESS's kernel with the
+#: member's params (the pipeline's witness keeps the paper's friction); it has none of its own
+#: inside the ensemble.
+WITNESS_MEMBER = next(m for m, spec in enumerate(_SPECS)
+                      if spec.module == registry.spec(consistency.WITNESS).module)
 #: Slots of one member's consistency monitor.
 MONITOR_SIZE = consistency.LAYOUT.size
 
