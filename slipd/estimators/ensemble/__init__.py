@@ -199,8 +199,8 @@ FUSION_DEFAULTS = {
     "member_monitor": 0.0,
     "monitor_sigma": 0.0,
     "spread_floor": 1.0,
-    # d_ekf's and every Righetti-Lenzo filter's (filters.FILTER_PARAMS): one sense of "settled"
-    "converged_sigma_beta": 0.0175,
+    # the Righetti-Lenzo filters' (d_ekf's): one sense of "settled"
+    "converged_sigma_beta": d_ekf.DEFAULTS["converged_sigma_beta"],
 }
 
 
