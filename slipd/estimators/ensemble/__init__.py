@@ -158,6 +158,7 @@ from slipd.estimators import consistency, registry
 from slipd.estimators.carnier2023 import hybrid_friction
 from slipd.estimators.chen2018 import pseudo_fusion
 from slipd.estimators.common.outputs import write_outputs
+from slipd.estimators.common.params import nested_fields
 from slipd.estimators.ensemble.covariance import error_covariance, own_variance, update_moments
 from slipd.estimators.ensemble.state import (
     _SPECS,
@@ -210,16 +211,15 @@ def _member_fields() -> list[tuple[str, float]]:
     for spec in _SPECS:
         module = member_module(spec.name)
         values = registry.make_params(module, spec.overrides)
-        for field in module.PARAMS:
-            fields.append((f"{spec.name.upper()}__{field.name}", float(values[int(field)])))
+        fields += nested_fields(spec.name, module.PARAMS,
+                                {field.name.lower(): values[int(field)] for field in module.PARAMS})
     return fields
 
 
 _FIELDS = _member_fields()
 _N_FUSION = len(FUSION_PARAMS)
 #: the members' consistency monitors' params (slipd.estimators.consistency), after the fusion's
-_MONITOR_FIELDS = [(f"MONITOR__{field.name}", float(consistency.DEFAULTS[field.name.lower()]))
-                   for field in consistency.PARAMS]
+_MONITOR_FIELDS = nested_fields("monitor", consistency.PARAMS, consistency.DEFAULTS)
 _MONITOR0 = _N_FUSION
 _N_MONITOR = len(_MONITOR_FIELDS)
 _N_HEAD = _N_FUSION + _N_MONITOR  # the first member's params start here

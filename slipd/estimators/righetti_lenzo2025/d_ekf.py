@@ -43,6 +43,7 @@ from slipd.channels import N_OUT, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET, 
 from slipd.errors import ConfigError
 from slipd.estimators.carnier2023 import hybrid_friction
 from slipd.estimators.common.layout import build_layout
+from slipd.estimators.common.params import nested_fields
 from slipd.estimators.righetti_lenzo2025 import filters as rl
 from slipd.estimators.righetti_lenzo2025.filters import S
 from slipd.numba_cache import nb
@@ -61,10 +62,7 @@ _FRICTION_OUT = int(LAYOUT.S.FRICTION_OUT)
 _TYRE_MU = int(LAYOUT.S.TYRE_MU)
 
 #: the friction estimator's params, ``friction__<field>`` (defaults: hybrid_friction's)
-_FRICTION_FIELDS = tuple(
-    (f"FRICTION__{field.name}", float(hybrid_friction.DEFAULTS[field.name.lower()]))
-    for field in hybrid_friction.PARAMS
-)
+_FRICTION_FIELDS = nested_fields("friction", hybrid_friction.PARAMS, hybrid_friction.DEFAULTS)
 PARAMS, DEFAULTS = rl.shared_params(
     "d_ekf",
     ("R_VX", 2e-3),  # (m/s)^2, variance of vx_meas for sigma_beta only (r_vx of eq. 29)
