@@ -95,7 +95,7 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
         log_nis = math.log(nis)
         if state["nis_seen"] >= params[P.NIS_LEVEL_MIN_TIME]:  # an anomaly teaches it little
             log_nis = min(log_nis, state["log_nis"] / state["nis_weight"]
-                          + math.log(params[P.NIS_LEVEL_CLIP_RATIO]))
+                          + state["nis_weight"] * math.log(params[P.NIS_LEVEL_CLIP_RATIO]))
         state["log_nis"] += gain * (log_nis - state["log_nis"])
         state["nis_weight"] += gain * (1.0 - state["nis_weight"])
         state["nis_seen"] += dt
@@ -360,3 +360,25 @@ def test_a_failure_that_has_passed_does_not_keep_the_method_failed(drive):
     assert failed < 310
     settled = failed + int((params[P.FREE_RUN_TIME] + params[P.RECOVERY_TIME]) / 0.01) + 100
     assert settled < len(U) - 200 and valid[settled:].mean() > 0.9
+
+
+def test_an_inconsistency_early_in_a_drive_does_not_become_the_level_either(drive):
+    """The level rises at most NIS_LEVEL_CLIP_RATIO-fold per time constant also while it has
+    seen less than one: a filter whose NIS jumps 300-fold after 4 s of history and then stays
+    60-fold above it (dk_ekf's on a drift on snow soon after the start) is not VALID again
+    before the drive ends. Before,
+    each tick was clipped at the ratio itself, which moves the bias-corrected mean of a short
+    memory by 1 / weight more: the level followed within seconds, the test passed again and
+    12.6 % of dk_ekf's VALID ticks on the simulated snow drift with a steering offset were more
+    than 5 deg off."""
+    U, _, witness_out = drive
+    none = np.full_like(witness_out, np.nan)
+    params = C.default_params()
+    base, _ = _agree(U, witness_out, none, params)
+    assert ((base[400:, Out.STATUS].astype(int) & Status.VALID) != 0).mean() > 0.9
+    drift = _with_nis_burst(_with_nis_burst(witness_out, 400, 500, 5.0), 400, len(U), 60.0)
+    out, plain = _agree(U, drift, none, params)
+    assert np.array_equal(out[:, Out.STATUS], plain[:, Out.STATUS])
+    status = out[:, Out.STATUS].astype(int)
+    assert not (status[400:] & Status.VALID).any()
+    assert (status[400:] & Status.DEGRADED).all()
