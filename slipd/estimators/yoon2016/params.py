@@ -73,6 +73,9 @@ class PARAMS(enum.IntEnum):
     ACCEL_LOWPASS_HZ = 52  # accelerometer vibration low-pass, Hz; 0 = none (the paper)
     ROLL_TILT = 53  # 1: the roll pseudo-measurement is the tilt asin((a_y - r v_x) / g)
     PITCH_FROM_GNSS = 54  # 1: pitch = -(the GNSS velocity's climb angle), 0: pitch_from_bias
+    COURSE_HEADING = 55  # 1: on a straight the GNSS course is a heading measurement (slipd)
+    R_COURSE = 56  # rad^2, its variance beyond the GNSS noise: the sideslip of a straight
+    COURSE_MIN_STRAIGHT_S = 57  # s of straight driving before the sampling tick it needs
 
 DEFAULTS = {
     # the heading EKF is driven by the gyro and corrected at 50 Hz; a small yaw random walk
@@ -150,4 +153,13 @@ DEFAULTS = {
     # 1: the pitch fed to eq. 5 is the road's grade from the GNSS climb angle (a levelled
     # accelerometer has none in its bx; gnss_magnetometer's docstring has the figures)
     "pitch_from_gnss": 1.0,
+    # 1: the GNSS course of a straight corrects the heading (gnss_magnetometer's docstring
+    # has the figures); 0: the paper's magnetometer heading
+    "course_heading": 1.0,
+    # (0.3 deg)^2: a 3 deg cross slope holds a car at ~0.2 deg of sideslip on a straight; the
+    # GNSS velocity's own noise across the track, r_gnss / V^2, is added per sample
+    "r_course": math.radians(0.3) ** 2,
+    # 1 s: a corner's sideslip has decayed (the yaw mode's time constant is 0.1-0.3 s), and a
+    # drift's reversal, where the yaw rate crosses zero at 20 deg of sideslip, is not a straight
+    "course_min_straight_s": 1.0,
 }

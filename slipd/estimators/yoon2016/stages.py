@@ -15,6 +15,7 @@ from slipd.estimators.yoon2016.heading import (
     calibration_residual,
     calibration_update,
     field_norm_error,
+    heading_course_correction,
     heading_from_magnetometer,
     heading_predict,
     heading_roll_update,
@@ -73,9 +74,50 @@ def start_heading(state, psi, phi, params):
 
 
 @nb.njit(cache=True, _nrt=False)
-def calibration_sample(state, sample_tick, v_north, v_east, params):
+def course_update(state, params, tick, sample_tick, course, speed):
+    """The GNSS course of a straight into the heading EKF (``course_heading``, slipd): the
+    heading and roll at the sampling tick corrected (``heading_course_correction``) and the
+    correction carried to everything that was computed with them since."""
+    es = entry(sample_tick)
+    # the course's variance: the GNSS velocity's noise across the track, r_gnss / V^2, and the
+    # sideslip a straight still has (R_COURSE)
+    phi_before = state[S.HEAD_PHI]
+    d_psi = heading_course_correction(
+        state, HEAD, HEAD_P, wrap_angle(course - state[es + E.PSI]),
+        params[PARAMS.R_GNSS] / (speed * speed) + params[PARAMS.R_COURSE],
+    )  # fmt: skip
+    d_phi = state[S.HEAD_PHI] - phi_before
+    # a yaw-rate offset shows in these corrections as in the magnetometer's: the same trim
+    tau_bias = params[PARAMS.YAW_BIAS_TIME_CONSTANT]
+    if tau_bias > 0.0:
+        limit = params[PARAMS.MAX_YAW_RATE_BIAS]
+        bias = state[S.YAW_RATE_BIAS] - d_psi / tau_bias
+        state[S.YAW_RATE_BIAS] = min(max(bias, -limit), limit)
+    # the attitude stored from the sampling tick on, so that this and the next delayed samples
+    # are rotated with the heading as now known (eq. 10) ...
+    j = sample_tick
+    while j <= tick:
+        ej = entry(j)
+        state[ej + E.PSI] = wrap_angle(state[ej + E.PSI] + d_psi)
+        state[ej + E.PHI] += d_phi
+        j += 1
+    # ... and the sideslip KF's body-frame velocity at the sampling tick (the delayed fusion
+    # re-propagates from there), which followed the GNSS velocity rotated with the old heading:
+    # it turns with the heading, else the step would be read as an acceleration offset
+    c, s = math.cos(d_psi), math.sin(d_psi)
+    vx, vy = state[es + E.VX], state[es + E.VY]
+    state[es + E.VX] = c * vx + s * vy
+    state[es + E.VY] = -s * vx + c * vy
+    if sample_tick == tick:
+        state[S.KF_VX] = state[es + E.VX]
+        state[S.KF_VY] = state[es + E.VY]
+
+
+@nb.njit(cache=True, _nrt=False)
+def calibration_sample(state, tick, sample_tick, v_north, v_east, params, dt):
     """Calibrate the magnetometer against a GNSS course when the car drove straight at the
-    sampling tick (beta ~ 0, so the course is the heading; slipd, see the module docstring).
+    sampling tick (beta ~ 0, so the course is the heading; slipd, see the module docstring),
+    and correct the heading with that course (``course_update``) when the straight has lasted.
 
     The first ``align_samples`` samples re-initialise the heading EKF (start-up alignment) and
     ask the sideslip KF to restart. Returns True when a sample was taken.
@@ -91,6 +133,14 @@ def calibration_sample(state, sample_tick, v_north, v_east, params):
     ):
         return False
     course = math.atan2(v_north, v_east)
+    # the course as the heading: once aligned, on a straight that began COURSE_MIN_STRAIGHT_S
+    # before the sampling tick and has lasted until now
+    if (params[PARAMS.COURSE_HEADING] > 0.5
+            and state[S.CAL_SAMPLES] >= params[PARAMS.ALIGN_SAMPLES]
+            and state[S.HEAD_INIT] > 0.5 and state[S.HISTORY_START_TICK] <= sample_tick
+            and state[S.STRAIGHT_S] >= (tick - sample_tick) * dt
+            + params[PARAMS.COURSE_MIN_STRAIGHT_S]):
+        course_update(state, params, tick, sample_tick, course, speed)
     # the sample levelled: the model's change from (roll, pitch) of the sampling tick to level
     # taken off (bank and grade would otherwise enter the fit as offsets)
     inclination = params[PARAMS.INCLINATION]
@@ -226,7 +276,7 @@ def gnss_sample(state, params, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pit
     if params[PARAMS.DELAY_COMPENSATION] > 0.5:
         delay_ticks = min(float(round(params[PARAMS.GNSS_DELAY] / dt)), BUFFER_TICKS - 2.0)
     sample_tick = max(tick - delay_ticks, state[S.HISTORY_START_TICK])
-    calibration_sample(state, sample_tick, v_north, v_east, params)
+    calibration_sample(state, tick, sample_tick, v_north, v_east, params, dt)
     if state[S.HISTORY_START_TICK] > tick:
         # the heading was just re-aligned: this tick's entry gets the new attitude
         save_entry(state, tick, ax, ay_no_gravity, yaw_rate, roll_rate, pitch_rate)

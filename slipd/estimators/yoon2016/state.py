@@ -71,6 +71,7 @@ LAYOUT = build_layout(
     "PATH_ANGLE",  # rad, climb angle atan(v_up / v_h) of the newest GNSS sample (NaN: none)
     "PATH_ANGLE_SLOW",  # rad, its average from 0: the road's grade (slipd)
     "YAW_ACC_SLOW",  # rad/s^2, low-passed yaw acceleration: the tilt's quasi-steady test (slipd)
+    "STRAIGHT_S",  # s the car has driven straight without a break, up to now (course_heading)
     ("CAL_PRIOR", 18),  # the calibration's prior C and covariance, for a reset
     ("SCRATCH", 16),  # working memory
     ("HISTORY", BUFFER_TICKS * ENTRY.size),
