@@ -215,6 +215,38 @@ def test_members_parting_ways_widen_sigma_and_unsettle_the_fusion(vehicle):
     assert sigma < 0.5 * spread and not status & ST_NOT_CONVERGED
 
 
+def test_on_a_low_grip_road_only_the_members_that_read_the_road_are_fused(vehicle):
+    """Four members agree on one drift (-12 deg), d_ekf and hybrid_friction, which estimate
+    the road's friction, and gnss_magnetometer, which needs no tyres, on another (-4 deg).
+    With d_ekf's friction class high the agreeing majority wins, as the difference moments
+    say; once it reads low grip only LOW_GRIP_MEMBERS keep a weight and the fusion follows
+    them; with ``low_grip_members`` 0 the majority wins on any road."""
+    from slipd.estimators.ensemble.state import FRICTION_MEMBER, LOW_GRIP_MEMBERS, MEMBERS
+
+    u = all_valid_u()
+    keep = np.array([name in LOW_GRIP_MEMBERS for name in MEMBERS])
+    fused = {}
+    for case, fclass, overrides in (("high", 3.0, {}), ("low", 1.0, {}),
+                                    ("low, off", 1.0, {"low_grip_members": 0.0})):
+        params = registry.make_params(ens, overrides)
+        state = ens.init(params, vehicle)
+        out = np.zeros(N_OUT)
+        rng = np.random.default_rng(5)
+        for _ in range(400):
+            for m in range(N_MEMBERS):
+                beta = -4.0 if keep[m] else -12.0
+                set_member(state, m, math.radians(beta + rng.normal(0.0, 0.3)),
+                           sigma=math.radians(0.5 if keep[m] else 0.3),
+                           fclass=fclass if m == FRICTION_MEMBER else 0.0)
+            ens.fuse_tick(state, u, params, DT, out)
+        fused[case] = (math.degrees(out[Out.BETA]), weights(state))
+    for case in ("high", "low, off"):
+        beta, w = fused[case]
+        assert beta < -8.0 and w[~keep].sum() > 0.5, case
+    beta, w = fused["low"]
+    assert abs(beta + 4.0) < 0.5 and np.all(w[~keep] == 0.0)
+
+
 @pytest.mark.parametrize(
     "bad_status", [ST_UNAVAILABLE, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET]
 )

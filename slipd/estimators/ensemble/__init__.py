@@ -68,13 +68,34 @@ that is right looks worse; only the common part of declared families is modelled
 of Chen's eq. 30 is not identifiable from difference moments alone; the structure above is the
 price of a truth-free P.
 
+Low-grip roads (``low_grip_members``, slipd): that limitation is the rule, not the exception,
+where the road's grip is far below the profile's. In a drift on snow the members whose beta
+rests on the profile's tyre friction (dk_ekf, pseudo_fusion's DBE) or on integrating the
+accelerometer through the slide with dry-road corrections (kinematic_heuristic, k_kf, whose
+vy leaks to 0) agree on one wrong drift and out-vote the one that reads the road: on seed 1's
+snow drift pseudo_fusion was 8-15 deg off with a sigma of 1.0-1.2 deg, the fusion 5.5 deg RMS
+against d_ekf's 2.0, whose own sigma there (4.7 deg median, its tyres saturated) is honest
+and so weighs little. While the d_ekf member's friction class (hybrid_friction's slip-based
+classifier, reported while settled, ``d_ekf``'s ``slip_friction``) is low grip, only
+``LOW_GRIP_MEMBERS`` are usable: the two that estimate the road's friction and the one whose
+beta needs no tyre model. On a dry road the classifier stays high (hybrid_friction's
+docstring) and nothing changes. Measured (benchmarks.accuracy, beta RMS [deg] against
+``low_grip_members`` = 0, the best member in brackets): s1 0.22 against 0.48 (d_ekf 0.22),
+misalignment 0.24 / 0.53 (0.24), the other cars 0.16 / 0.29 and 0.22 / 0.51 (0.15, 0.22),
+vibration 0.23 / 0.25 (0.21); but s0 0.21 / 0.19 and the level frame 0.25 / 0.19
+(hybrid_friction 0.21): where the majority was right on seed 0's drift (1.17 deg) the fusion
+now follows d_ekf (1.78); every drive but snow_drift within 5 %. VALID share -0.2 point, VALID
+ticks more than 2 deg off unchanged, none more than 5 deg off. Within 10 % of its best member
+on every block but the level frame (1.17 x), against 7 of 12 before.
+
 Usable member (else weight 0 this tick, and its moments are not updated): status without
 UNAVAILABLE, INPUT_TIMEOUT, NOT_CONVERGED or RESET; none of its own required channels (its
 ``REQUIRED``, default ``CORE_CHANNELS``) invalid in ``u``; finite beta with |beta| < 90 deg and
-finite vx; and usable for the last ``entry_time`` seconds without a break (its moments need
-that long to say anything). While no member is fused (start-up: none has been usable for
-``entry_time`` yet), the members usable this tick, else all with finite outputs, are weighted
-by their own sigma_beta alone, w_i ~ 1 / (sigma_i^2 + sigma_floor^2), with NOT_CONVERGED.
+finite vx; one of ``LOW_GRIP_MEMBERS`` on a low-grip road; and usable for the last
+``entry_time`` seconds without a break (its moments need that long to say anything). While
+no member is fused (start-up: none has been usable for ``entry_time`` yet), the members usable
+this tick, else all with finite outputs, are weighted by their own sigma_beta alone,
+w_i ~ 1 / (sigma_i^2 + sigma_floor^2), with NOT_CONVERGED.
 
 The spread floor (``spread_floor``, slipd): w'Pw is the variance of the P the difference
 moments allow, remembered over tau; when members that agreed part ways within a tick (a
@@ -164,8 +185,10 @@ from slipd.estimators.ensemble.state import (
     _SPECS,
     EXCLUDING,
     FAMILY,
+    FRICTION_MEMBER,
     FUSION_END,
     LAYOUT,
+    LOW_GRIP_MASK,
     MEMBERS,
     N_MEMBERS,
     PERSISTENT,
@@ -191,6 +214,7 @@ class FUSION_PARAMS(enum.IntEnum):
     MONITOR_SIGMA = 4  # 1: a member's own variance is its monitor's calibrated one (slipd)
     SPREAD_FLOOR = 5  # 1: the fused variance is at least the members' weighted spread (slipd)
     CONVERGED_SIGMA_BETA = 6  # rad, NOT_CONVERGED while the fused sigma exceeds it; 0 = none
+    LOW_GRIP_MEMBERS = 7  # 1: on a low-grip road only LOW_GRIP_MEMBERS are fused (slipd)
 
 
 FUSION_DEFAULTS = {
@@ -202,6 +226,7 @@ FUSION_DEFAULTS = {
     "spread_floor": 1.0,
     # the Righetti-Lenzo filters' (d_ekf's): one sense of "settled"
     "converged_sigma_beta": d_ekf.DEFAULTS["converged_sigma_beta"],
+    "low_grip_members": 1.0,
 }
 
 
@@ -350,14 +375,15 @@ def monitor_members(state, u, params, vehicle, dt):
 
 
 @nb.njit(cache=True, _nrt=False)
-def mark_usable(state, u, entry_ticks, member_monitor):
+def mark_usable(state, u, entry_ticks, member_monitor, low_grip):
     """Per member: USABLE = usable this tick (1/0), USABLE_TICKS its streak, FUSED = usable for
     at least ``entry_ticks`` ticks (the member enters the fusion). With ``member_monitor``, a
     member its consistency monitor fails (CONSISTENT 0) is not usable while another usable one
-    passes (when every one fails, none is vouched for and all stay)."""
+    passes (when every one fails, none is vouched for and all stay). With ``low_grip`` (the
+    road is low-grip, ``fuse_tick``) only the LOW_GRIP_MEMBERS are usable."""
     vouched = False
     for m in range(N_MEMBERS):
-        usable = member_usable(state, u, m)
+        usable = member_usable(state, u, m) and not (low_grip and LOW_GRIP_MASK[m] < 0.5)
         state[F.USABLE + m] = 1.0 if usable else 0.0
         vouched = vouched or (member_monitor and usable and state[F.CONSISTENT + m] > 0.5)
     for m in range(N_MEMBERS):
@@ -466,8 +492,11 @@ def fuse_tick(state, u, params, dt, out):
     """The fusion part of ``step`` on the member outputs already in ``state[F.MEMBER_OUT:]``."""
     decay = dt / params[FUSION_PARAMS.TIME_CONSTANT]
     decay = decay if decay < 1.0 else 1.0
+    # the road is low-grip when the friction member's settled classifier says so
+    low_grip = params[FUSION_PARAMS.LOW_GRIP_MEMBERS] > 0.5 and _member_out(
+        state, FRICTION_MEMBER)[Out.FRICTION_CLASS] == hybrid_friction.CLASS_LOW
     mark_usable(state, u, params[FUSION_PARAMS.ENTRY_TIME] / dt,
-                params[FUSION_PARAMS.MEMBER_MONITOR] > 0.5)
+                params[FUSION_PARAMS.MEMBER_MONITOR] > 0.5, low_grip)
     update_moments(state, decay)
     fuse(state, params[FUSION_PARAMS.SIGMA_FLOOR] ** 2, params[FUSION_PARAMS.MONITOR_SIGMA] > 0.5,
          params[FUSION_PARAMS.SPREAD_FLOOR] > 0.5, params[FUSION_PARAMS.CONVERGED_SIGMA_BETA], out)

@@ -40,6 +40,15 @@ EXCLUDING = ST_UNAVAILABLE | ST_INPUT_TIMEOUT | ST_NOT_CONVERGED | ST_RESET
 #: inside the ensemble.
 WITNESS_MEMBER = next(m for m, spec in enumerate(_SPECS)
                       if spec.module == registry.spec(consistency.WITNESS).module)
+#: The members left in the fusion on a low-grip road (``low_grip_members``; module docstring):
+#: the two that estimate the road's friction (d_ekf from the wheels' slip, hybrid_friction's
+#: adaptive law and classifier) and the one whose beta needs no tyre model (the GNSS velocity).
+LOW_GRIP_MEMBERS = ("d_ekf", "hybrid_friction", "gnss_magnetometer")
+#: 1.0 for each of them, in member order (the kernel's mask)
+LOW_GRIP_MASK = tuple(1.0 if name in LOW_GRIP_MEMBERS else 0.0 for name in MEMBERS)
+#: The member whose friction class says the road is low-grip: d_ekf, which reports
+#: hybrid_friction's slip-based classifier while that is settled (its ``slip_friction``)
+FRICTION_MEMBER = MEMBERS.index("d_ekf")
 #: Slots of one member's consistency monitor.
 MONITOR_SIZE = consistency.LAYOUT.size
 
