@@ -258,9 +258,10 @@ def test_course_correction_is_the_kalman_gain_with_p_kept():
     state = np.zeros(5)
     state[0:2] = x
     state[2:5] = P[0, 0], P[0, 1], P[1, 1]
-    change = yoon_heading.heading_course_correction(state, 0, 2, innovation, r)
+    d_psi, d_phi = yoon_heading.heading_course_correction(state, 0, 2, innovation, r)
     np.testing.assert_allclose(state[0:2], x_ref, rtol=0, atol=1e-15)
-    assert change == pytest.approx(x_ref[0] - x[0], rel=1e-12)
+    assert d_psi == pytest.approx(x_ref[0] - x[0], rel=1e-12)
+    assert d_phi == pytest.approx(x_ref[1] - x[1], rel=1e-12)
     np.testing.assert_array_equal(state[2:5], [P[0, 0], P[0, 1], P[1, 1]])
 
 

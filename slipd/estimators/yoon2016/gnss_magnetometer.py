@@ -171,7 +171,12 @@ from slipd.estimators.yoon2016.sideslip import (
     kf4_predict,
     save_entry,
 )
-from slipd.estimators.yoon2016.stages import gnss_sample, heading_tick, reset_calibration
+from slipd.estimators.yoon2016.stages import (
+    driving_straight,
+    gnss_sample,
+    heading_tick,
+    reset_calibration,
+)
 from slipd.estimators.yoon2016.state import (
     BUFFER_TICKS,
     CAL_C,
@@ -413,8 +418,7 @@ def step(state, u, params, vehicle, dt, out):
     if n_wheels < 4:
         status |= ST_INPUT_TIMEOUT
     # how long the car has driven straight without a break (course_heading's test)
-    if abs(yaw_rate) < params[PARAMS.CAL_MAX_YAW_RATE] and (
-            abs(yaw_rate) * vx_wheels < params[PARAMS.CAL_MAX_AY]):
+    if driving_straight(yaw_rate, vx_wheels, params):
         state[S.STRAIGHT_S] += dt
     else:
         state[S.STRAIGHT_S] = 0.0

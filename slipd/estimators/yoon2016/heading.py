@@ -157,7 +157,7 @@ def heading_roll_update(state, i_psi, i_p, scratch, roll_measured, r_roll):
 def heading_course_correction(state, i_psi, i_p, innovation, r_course):
     """The GNSS course of a straight as a heading measurement (H = [1, 0]; slipd,
     ``gnss_magnetometer``'s docstring): x += K (course - psi) with K = P H' / (H P H' + r),
-    P left as it is. Returns the change of psi.
+    P left as it is. Returns the changes of psi and phi.
 
     P is not reduced because the course's error is not white: it is the straight's own
     sideslip (a cross slope, a crosswind), shared by every sample of that straight, so ten
@@ -168,10 +168,11 @@ def heading_course_correction(state, i_psi, i_p, innovation, r_course):
     p_psi = state[i_p]
     gain_psi = p_psi / (p_psi + r_course)
     gain_phi = state[i_p + 1] / (p_psi + r_course)
-    change = gain_psi * innovation
-    state[i_psi] = wrap_angle(state[i_psi] + change)
-    state[i_psi + 1] += gain_phi * innovation
-    return change
+    d_psi = gain_psi * innovation
+    phi = state[i_psi + 1]
+    state[i_psi] = wrap_angle(state[i_psi] + d_psi)
+    state[i_psi + 1] = phi + gain_phi * innovation
+    return d_psi, state[i_psi + 1] - phi  # the change applied, to the last bit
 
 
 # ---------------------------------------------------------------------------------------------

@@ -73,6 +73,26 @@ def start_heading(state, psi, phi, params):
     state[S.HISTORY_START_TICK] = state[S.TICK]  # the stored attitudes before are stale
 
 
+@nb.njit(cache=True, inline="always")
+def driving_straight(yaw_rate, speed, params):
+    """The calibration's "straight" (beta ~ 0): |r| below ``cal_max_yaw_rate`` and the
+    centripetal |r V| below ``cal_max_ay`` (False for a non-finite speed)."""
+    return (abs(yaw_rate) < params[PARAMS.CAL_MAX_YAW_RATE]
+            and abs(yaw_rate) * speed < params[PARAMS.CAL_MAX_AY])
+
+
+@nb.njit(cache=True, inline="always")
+def trim_yaw_rate_bias(state, params, correction):
+    """slipd: the integral part of a complementary filter. A yaw-rate bias makes every heading
+    update correct psi the same way; the corrections, integrated with time constant
+    ``yaw_bias_time_constant``, are the bias (b_r of eq. 7 without a standstill)."""
+    tau_bias = params[PARAMS.YAW_BIAS_TIME_CONSTANT]
+    if tau_bias > 0.0:
+        limit = params[PARAMS.MAX_YAW_RATE_BIAS]
+        bias = state[S.YAW_RATE_BIAS] - correction / tau_bias
+        state[S.YAW_RATE_BIAS] = min(max(bias, -limit), limit)
+
+
 @nb.njit(cache=True, _nrt=False)
 def course_update(state, params, tick, sample_tick, course, speed):
     """The GNSS course of a straight into the heading EKF (``course_heading``, slipd): the
@@ -81,18 +101,12 @@ def course_update(state, params, tick, sample_tick, course, speed):
     es = entry(sample_tick)
     # the course's variance: the GNSS velocity's noise across the track, r_gnss / V^2, and the
     # sideslip a straight still has (R_COURSE)
-    phi_before = state[S.HEAD_PHI]
-    d_psi = heading_course_correction(
+    d_psi, d_phi = heading_course_correction(
         state, HEAD, HEAD_P, wrap_angle(course - state[es + E.PSI]),
         params[PARAMS.R_GNSS] / (speed * speed) + params[PARAMS.R_COURSE],
     )  # fmt: skip
-    d_phi = state[S.HEAD_PHI] - phi_before
-    # a yaw-rate offset shows in these corrections as in the magnetometer's: the same trim
-    tau_bias = params[PARAMS.YAW_BIAS_TIME_CONSTANT]
-    if tau_bias > 0.0:
-        limit = params[PARAMS.MAX_YAW_RATE_BIAS]
-        bias = state[S.YAW_RATE_BIAS] - d_psi / tau_bias
-        state[S.YAW_RATE_BIAS] = min(max(bias, -limit), limit)
+    # a yaw-rate offset shows in these corrections as in the magnetometer's
+    trim_yaw_rate_bias(state, params, d_psi)
     # the attitude stored from the sampling tick on, so that this and the next delayed samples
     # are rotated with the heading as now known (eq. 10) ...
     j = sample_tick
@@ -127,8 +141,7 @@ def calibration_sample(state, tick, sample_tick, v_north, v_east, params, dt):
     yaw_rate = state[es + E.YAW_RATE]
     if not (
         speed > params[PARAMS.CAL_MIN_SPEED]
-        and abs(yaw_rate) < params[PARAMS.CAL_MAX_YAW_RATE]
-        and abs(yaw_rate) * speed < params[PARAMS.CAL_MAX_AY]
+        and driving_straight(yaw_rate, speed, params)
         and math.isfinite(state[es + E.MAG_X])
     ):
         return False
@@ -137,7 +150,6 @@ def calibration_sample(state, tick, sample_tick, v_north, v_east, params, dt):
     # before the sampling tick and has lasted until now
     if (params[PARAMS.COURSE_HEADING] > 0.5
             and state[S.CAL_SAMPLES] >= params[PARAMS.ALIGN_SAMPLES]
-            and state[S.HEAD_INIT] > 0.5 and state[S.HISTORY_START_TICK] <= sample_tick
             and state[S.STRAIGHT_S] >= (tick - sample_tick) * dt
             + params[PARAMS.COURSE_MIN_STRAIGHT_S]):
         course_update(state, params, tick, sample_tick, course, speed)
@@ -204,15 +216,8 @@ def magnetometer_update(state, params, tick, m_x, m_y, m_z, dt):
         return
     state[S.GATE_ACCEPTS] += 1.0
     state[S.GATE_REJECT_RUN] = 0.0
-    tau_bias = params[PARAMS.YAW_BIAS_TIME_CONSTANT]
-    if tau_bias > 0.0 and gate < math.inf:
-        # slipd: the integral part of a complementary filter. A yaw-rate bias makes
-        # every update correct psi the same way; the corrections, integrated with
-        # time constant tau, are the bias (b_r of eq. 7 without a standstill)
-        correction = wrap_angle(state[S.HEAD_PSI] - psi_before)
-        limit = params[PARAMS.MAX_YAW_RATE_BIAS]
-        bias = state[S.YAW_RATE_BIAS] - correction / tau_bias
-        state[S.YAW_RATE_BIAS] = min(max(bias, -limit), limit)
+    if gate < math.inf:
+        trim_yaw_rate_bias(state, params, wrap_angle(state[S.HEAD_PSI] - psi_before))
 
 
 @nb.njit(cache=True, inline="always")
