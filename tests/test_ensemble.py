@@ -247,6 +247,49 @@ def test_on_a_low_grip_road_only_the_members_that_read_the_road_are_fused(vehicl
     assert abs(beta + 4.0) < 0.5 and np.all(w[~keep] == 0.0)
 
 
+def test_a_friction_class_that_flickers_does_not_take_members_out(vehicle):
+    """A classifier fooled for a few ticks at a time (noisy wheel speeds on a dry road: 0.1-0.5
+    s of low grip, seen with five sensor errors at once) must not take the members out each
+    time, and each for ``entry_time`` more until it re-enters: the road is taken as low-grip
+    only once the class has said so for ``low_grip_time``, and as dry again the same way.
+    With ``low_grip_time`` 0 (the decision per tick) the flicker takes them out."""
+    from slipd.estimators.ensemble.state import FRICTION_MEMBER, LOW_GRIP_MEMBERS, MEMBERS
+
+    u = all_valid_u()
+    keep = np.array([name in LOW_GRIP_MEMBERS for name in MEMBERS])
+
+    def run(params, classes):
+        """Every member on 0 deg; d_ekf's class per tick from ``classes``; the fewest members
+        fused over the run and the weight the others had at its end."""
+        state = ens.init(params, vehicle)
+        out = np.zeros(N_OUT)
+        fewest = N_MEMBERS
+        for k, fclass in enumerate(classes):
+            for m in range(N_MEMBERS):
+                set_member(state, m, math.radians(0.3 * math.sin(0.1 * k + m)), sigma=1e-3,
+                           fclass=fclass if m == FRICTION_MEMBER else 0.0)
+            ens.fuse_tick(state, u, params, DT, out)
+            if k > 200:
+                fewest = min(fewest, int(state[F.FUSED : F.FUSED + N_MEMBERS].sum()))
+        return fewest, weights(state)[~keep].sum()
+
+    high, low = 3.0, 1.0
+    period = [high] * 40 + [low] * 30  # 0.3 s of low grip every 0.7 s
+    flicker = [high] * 300 + period * 10
+    params = registry.make_params(ens)
+    fewest, others = run(params, flicker)
+    assert fewest == N_MEMBERS and others > 0.3
+    fewest, _ = run(registry.make_params(ens, {"low_grip_time": 0.0}), flicker)
+    assert fewest == int(keep.sum())
+    # a class held for longer than low_grip_time is the road: the others leave after it ...
+    hold = int(round(params[FUSION_PARAMS.LOW_GRIP_TIME] / DT))
+    fewest, others = run(params, [high] * 300 + [low] * (hold + 10))
+    assert fewest == int(keep.sum()) and others == 0.0
+    # ... and not before
+    fewest, _ = run(params, [high] * 300 + [low] * (hold - 2))
+    assert fewest == N_MEMBERS
+
+
 @pytest.mark.parametrize(
     "bad_status", [ST_UNAVAILABLE, ST_INPUT_TIMEOUT, ST_NOT_CONVERGED, ST_RESET]
 )

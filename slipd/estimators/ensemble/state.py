@@ -83,6 +83,8 @@ LAYOUT = build_layout(
     ("MONITOR_OUT", N_OUT),  # scratch, a member's outputs as its monitor sees them
     ("CONSISTENT", N_MEMBERS),  # 1.0 unless the member's monitor failed it this tick
     ("CALIBRATED_SIGMA", N_MEMBERS),  # rad, its monitor's calibrated sigma (NaN: not run)
+    ("LOW_GRIP", 1),  # 1.0 while the road is taken as low-grip (``low_grip_members``)
+    ("LOW_GRIP_CHANGE_TICKS", 1),  # consecutive ticks the friction class has said otherwise
     *((name.upper(), member_module(name).LAYOUT) for name in MEMBERS),
 )
 F = LAYOUT.S
