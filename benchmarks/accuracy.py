@@ -29,9 +29,9 @@ The baseline, measured in the same run, is ``zero`` (beta = 0): each block's las
 method's RMS over zero's, so < 1 is better than not estimating at all. Logs are generated once
 into ``--cache`` (default runs/accuracy) and reused; delete the folder to regenerate.
 
-    .venv/bin/python -m benchmarks.accuracy [--blocks suite,mismatch,variants,real,plants]
-        [--estimator all|a,b] [--jobs 2] [--json OUT.json] [--cache DIR]
-        (blocks: suite,mismatch,variants,real,plants,combined; default all)
+    .venv/bin/python -m benchmarks.accuracy
+        [--blocks suite,mismatch,variants,real,plants,combined] [--estimator all|a,b]
+        [--jobs 2] [--json OUT.json] [--cache DIR]
 
 A parameter is measured against its default by naming the method with it set beside the
 method: ``--estimator kinematic_heuristic,kinematic_heuristic:steady_gain=0``.

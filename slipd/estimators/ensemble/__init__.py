@@ -66,7 +66,13 @@ families (e.g. every method that assumes the nominal friction, on snow) does not
 their differences, so such a group still looks more precise than it is and an isolated member
 that is right looks worse; only the common part of declared families is modelled. The full P
 of Chen's eq. 30 is not identifiable from difference moments alone; the structure above is the
-price of a truth-free P.
+price of a truth-free P. Where several sensor errors act at once (benchmarks.accuracy's
+``combined`` block: vibration, a misaligned IMU, a steering offset, tone-wheel speeds and skew
+together) every member reads the same wrong inputs and their errors correlate at 0.5-0.9; the
+fit then gives the smallest P_ii to whichever member carries the most of the common error
+(pseudo_fusion 0.15 deg claimed against 0.41 true on vehicle 1's endurance drive, d_ekf 0.15
+against 0.10), and the fusion is 0.28 deg there against d_ekf's 0.23. Median three-cornered
+hats instead of the fit did not help (benchmarks/MEASUREMENTS.md).
 
 Low-grip roads (``low_grip_members``, slipd): that limitation is the rule, not the exception,
 where the road's grip is far below the profile's. In a drift on snow the members whose beta
