@@ -1,5 +1,7 @@
 """Accuracy regression in ``make test``: every estimator on short simulated scenarios (two
-sensor seeds) and on the real run of ../shared/realdata, through the codec like the product.
+sensor seeds), on the same scenarios under two of benchmarks.accuracy's ``combined`` cases (five
+sensor errors at once on vehicle 1 with its own profile, five profile errors at once; sensor
+seed 3) and on the real run of ../shared/realdata, through the codec like the product.
 
 The thresholds are the figures measured on this code (``MEASURED``) plus 10 % (beta RMS) or
 half a percentage point (VALID ticks more than 5 deg off), and minus two percentage points of
@@ -47,7 +49,8 @@ REAL_PROFILE = Path(__file__).resolve().parents[1] / "examples/revs_250lm/ferrar
 #: friction steps early in a short drive, consistency's docstring; gnss_magnetometer and the
 #: ensemble on 2026-12-06 after the heading takes the GNSS course of a straight, the ensemble
 #: again after it fuses only the members that read the road on a low-grip one, and on
-#: 2026-12-06 after the road is taken as low-grip only once the class has held for 1 s).
+#: 2026-12-06 after the road is taken as low-grip only once the class has held for 1 s; the
+#: two combined blocks added on 2026-12-06, measured on the code of that day).
 MEASURED: dict[tuple[str, str], tuple[float, float, float]] = {
     ('sim s0', 'zero'): (0.4660, 0.0000, 0.0000),
     ('sim s0', 'linear_kf'): (0.4857, 0.0000, 0.7739),
@@ -91,6 +94,34 @@ MEASURED: dict[tuple[str, str], tuple[float, float, float]] = {
     ('real', 'pseudo_fusion_wbe'): (2.5039, 0.0028, 0.5376),
     ('real', 'gnss_magnetometer'): (1.6922, 0.0000, 0.0000),
     ('real', 'ensemble'): (0.5472, 0.0000, 0.9286),
+    ('combined sensors v1', 'zero'): (0.5022, 0.0000, 0.0000),
+    ('combined sensors v1', 'linear_kf'): (0.5582, 0.0000, 0.8295),
+    ('combined sensors v1', 'kinematic_heuristic'): (2.7427, 0.0000, 0.1763),
+    ('combined sensors v1', 'dk_ekf'): (0.6016, 0.0000, 0.8334),
+    ('combined sensors v1', 'd_ekf'): (0.3604, 0.0000, 0.6978),
+    ('combined sensors v1', 'k_kf'): (1.2127, 0.0000, 0.0000),
+    ('combined sensors v1', 'hybrid_friction'): (1.1437, 0.0000, 0.5187),
+    ('combined sensors v1', 'hybrid_friction_nocls'): (1.0726, 0.0000, 0.5244),
+    ('combined sensors v1', 'pseudo_fusion'): (1.1030, 0.0000, 0.6414),
+    ('combined sensors v1', 'pseudo_fusion_kbe'): (2.2088, 0.0000, 0.1140),
+    ('combined sensors v1', 'pseudo_fusion_dbe'): (0.6417, 0.0000, 0.6713),
+    ('combined sensors v1', 'pseudo_fusion_wbe'): (1.3981, 0.0000, 0.3722),
+    ('combined sensors v1', 'gnss_magnetometer'): (3.6602, 0.0000, 0.1025),
+    ('combined sensors v1', 'ensemble'): (0.7774, 0.0000, 0.6932),
+    ('combined profile v2', 'zero'): (0.4660, 0.0000, 0.0000),
+    ('combined profile v2', 'linear_kf'): (0.6498, 0.0000, 0.7237),
+    ('combined profile v2', 'kinematic_heuristic'): (1.3515, 0.0000, 0.3904),
+    ('combined profile v2', 'dk_ekf'): (0.7613, 0.0000, 0.8815),
+    ('combined profile v2', 'd_ekf'): (0.4745, 0.0000, 0.8794),
+    ('combined profile v2', 'k_kf'): (1.1218, 0.0000, 0.0000),
+    ('combined profile v2', 'hybrid_friction'): (0.5669, 0.0000, 0.7664),
+    ('combined profile v2', 'hybrid_friction_nocls'): (0.8076, 0.0000, 0.7585),
+    ('combined profile v2', 'pseudo_fusion'): (0.6787, 0.0000, 0.6979),
+    ('combined profile v2', 'pseudo_fusion_kbe'): (1.5837, 0.0000, 0.3827),
+    ('combined profile v2', 'pseudo_fusion_dbe'): (0.7313, 0.0000, 0.8465),
+    ('combined profile v2', 'pseudo_fusion_wbe'): (1.0514, 0.0000, 0.6290),
+    ('combined profile v2', 'gnss_magnetometer'): (2.1982, 0.0000, 0.3054),
+    ('combined profile v2', 'ensemble'): (0.4774, 0.0000, 0.7521),
 }
 
 
@@ -106,6 +137,17 @@ def blocks(tmp_path_factory) -> dict[str, list[LogCase]]:
             simulate_to_files(name, folder, seed=seed)
         found[f"sim s{seed}"] = [LogCase(n, folder / f"{n}.log", folder / f"{n}.truth.csv")
                                  for n in SCENARIOS]
+    # cases no method was tuned on (benchmarks.accuracy's ``combined`` block), short: five
+    # sensor errors at once on vehicle 1 with its own profile, five profile errors at once
+    from benchmarks.accuracy import SENSOR_ERRORS
+
+    for block, vehicle, seed, variants in (("combined sensors v1", 1, 3, SENSOR_ERRORS),
+                                           ("combined profile v2", 2, 3, None)):
+        folder = tmp_path_factory.mktemp(block.replace(" ", "_"))
+        for name in SCENARIOS:
+            simulate_to_files(name, folder, vehicle=vehicle, seed=seed, variant=variants)
+        found[block] = [LogCase(n, folder / f"{n}.log", folder / f"{n}.truth.csv")
+                        for n in SCENARIOS]
     if REAL_CSV.exists():
         from benchmarks.accuracy import REAL_IMPORT
         from slipd.profile import load_profile
@@ -121,14 +163,19 @@ def blocks(tmp_path_factory) -> dict[str, list[LogCase]]:
 
 
 @pytest.fixture(scope="module")
-def figures(blocks) -> dict[tuple[str, str], tuple[float, float, float]]:
+def figures(blocks, tmp_path_factory) -> dict[tuple[str, str], tuple[float, float, float]]:
+    from benchmarks.accuracy import PROFILE_ERRORS
     from slipd.estimators.registry import available
+    from slipd.identify.truth import write_car_profile
     from slipd.profile import load_profile
 
+    own_v1 = write_car_profile(tmp_path_factory.mktemp("plant_v1") / "plant_v1.toml", 1)
+    profiles = {"real": REAL_PROFILE, "combined sensors v1": own_v1}
     methods = available()
     measured = {}
     for block, logs in blocks.items():
-        profile = load_profile(REAL_PROFILE if block == "real" else "default")
+        edit = PROFILE_ERRORS.edit() if block == "combined profile v2" else None
+        profile = load_profile(profiles.get(block, "default"), edit=edit)
         case, _, _ = evaluate_logs(logs, methods, profile)
         for m, acc in case.pooled.items():
             s = acc.scores()
