@@ -49,6 +49,7 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import NamedTuple
 
 from slipd.eval.metrics import Accumulator, Scores
 from slipd.eval.mismatch import CF, CR, Change, MismatchCase
@@ -76,15 +77,38 @@ PROFILE_ERRORS = MismatchCase(
     "and 5 cm right of where the profile says",
     (Change("mass", scale=1.15), Change(CF, scale=1.15), Change(CR, scale=0.75),
      Change("roll_stiffness", scale=0.6), Change("imu_position", offset=(0.08, -0.05, 0.0))))
-#: the ``combined`` block's cases: (name, sensor seed, variants, vehicle, profile: "own" for
-#: the car's own or "default", profile errors on top)
-COMBINED: tuple[tuple[str, int, str | None, int, str, MismatchCase | None], ...] = (
-    ("sensor errors v2 s2", 2, SENSOR_ERRORS, 2, "default", None),
-    ("sensor errors v1 own s3", 3, SENSOR_ERRORS, 1, "own", None),
-    ("level frame+vibration v3 own s2", 2, "level_frame,vibration", 3, "own", None),
-    ("profile errors v2 s3", 3, None, 2, "default", PROFILE_ERRORS),
-    ("vibration v1 default s2", 2, "vibration", 1, "default", None),
+
+
+class CombinedCase(NamedTuple):
+    """One case of the ``combined`` block."""
+
+    name: str
+    seed: int  # sensor seed
+    variants: str | None  # slipd.sim.variants, comma-joined (applied together)
+    vehicle: int  # the simulator's car
+    own_profile: bool  # the car's own profile (write_car_profile), else the default one
+    errors: MismatchCase | None  # profile errors on top
+
+    def profile(self, folder: Path) -> str:
+        """The profile the case's logs are evaluated with (the car's own written to
+        ``folder``)."""
+        if not self.own_profile:
+            return "default"
+        from slipd.identify.truth import write_car_profile
+
+        return str(write_car_profile(folder / f"plant_v{self.vehicle}.toml", self.vehicle))
+
+
+#: the ``combined`` block's cases
+COMBINED: tuple[CombinedCase, ...] = (
+    CombinedCase("sensor errors v2 s2", 2, SENSOR_ERRORS, 2, False, None),
+    CombinedCase("sensor errors v1 own s3", 3, SENSOR_ERRORS, 1, True, None),
+    CombinedCase("level frame+vibration v3 own s2", 2, "level_frame,vibration", 3, True, None),
+    CombinedCase("profile errors v2 s3", 3, None, 2, False, PROFILE_ERRORS),
+    CombinedCase("vibration v1 default s2", 2, "vibration", 1, False, None),
 )
+#: the combined cases ``make test``'s accuracy regression runs on its short scenarios
+COMBINED_SHORT = ("sensor errors v1 own s3", "profile errors v2 s3")
 #: the scenario issue 17's "no method above 2 deg pooled (snow drift aside)" leaves out: a
 #: second beta RMS matrix pools every block without it
 ASIDE = "snow_drift"
@@ -313,16 +337,13 @@ def main(argv: list[str] | None = None) -> int:
             jobs.append(("plants own", logs, methods, str(own), None, None))
             jobs.append(("plants default", logs, methods, "default", None, None))
     if "combined" in blocks:
-        from slipd.identify.truth import write_car_profile
-
         order.append("combined")
-        for name, seed, variants, vehicle, profile, errors in COMBINED:
-            label = (variants or "none").replace(",", "+")
-            logs = suite_logs(simulate_suite(args.cache / f"combined_v{vehicle}_s{seed}_{label}",
-                                             seed, variants, vehicle))
-            if profile == "own":
-                profile = str(write_car_profile(args.cache / f"plant_v{vehicle}.toml", vehicle))
-            jobs.append(("combined", logs, methods, profile, errors, name))
+        for case in COMBINED:
+            label = (case.variants or "none").replace(",", "+")
+            folder = args.cache / f"combined_v{case.vehicle}_s{case.seed}_{label}"
+            logs = suite_logs(simulate_suite(folder, case.seed, case.variants, case.vehicle))
+            jobs.append(("combined", logs, methods, case.profile(args.cache), case.errors,
+                         case.name))
 
     results: dict[str, list[CaseResult]] = {b: [] for b in order}
     wall: dict[str, float] = dict.fromkeys(order, 0.0)

@@ -94,35 +94,42 @@ MEASURED: dict[tuple[str, str], tuple[float, float, float]] = {
     ('real', 'pseudo_fusion_wbe'): (2.5039, 0.0028, 0.5376),
     ('real', 'gnss_magnetometer'): (1.6922, 0.0000, 0.0000),
     ('real', 'ensemble'): (0.5472, 0.0000, 0.9286),
-    ('combined sensors v1', 'zero'): (0.5022, 0.0000, 0.0000),
-    ('combined sensors v1', 'linear_kf'): (0.5582, 0.0000, 0.8295),
-    ('combined sensors v1', 'kinematic_heuristic'): (2.7427, 0.0000, 0.1763),
-    ('combined sensors v1', 'dk_ekf'): (0.6016, 0.0000, 0.8334),
-    ('combined sensors v1', 'd_ekf'): (0.3604, 0.0000, 0.6978),
-    ('combined sensors v1', 'k_kf'): (1.2127, 0.0000, 0.0000),
-    ('combined sensors v1', 'hybrid_friction'): (1.1437, 0.0000, 0.5187),
-    ('combined sensors v1', 'hybrid_friction_nocls'): (1.0726, 0.0000, 0.5244),
-    ('combined sensors v1', 'pseudo_fusion'): (1.1030, 0.0000, 0.6414),
-    ('combined sensors v1', 'pseudo_fusion_kbe'): (2.2088, 0.0000, 0.1140),
-    ('combined sensors v1', 'pseudo_fusion_dbe'): (0.6417, 0.0000, 0.6713),
-    ('combined sensors v1', 'pseudo_fusion_wbe'): (1.3981, 0.0000, 0.3722),
-    ('combined sensors v1', 'gnss_magnetometer'): (3.6602, 0.0000, 0.1025),
-    ('combined sensors v1', 'ensemble'): (0.7774, 0.0000, 0.6932),
-    ('combined profile v2', 'zero'): (0.4660, 0.0000, 0.0000),
-    ('combined profile v2', 'linear_kf'): (0.6498, 0.0000, 0.7237),
-    ('combined profile v2', 'kinematic_heuristic'): (1.3515, 0.0000, 0.3904),
-    ('combined profile v2', 'dk_ekf'): (0.7613, 0.0000, 0.8815),
-    ('combined profile v2', 'd_ekf'): (0.4745, 0.0000, 0.8794),
-    ('combined profile v2', 'k_kf'): (1.1218, 0.0000, 0.0000),
-    ('combined profile v2', 'hybrid_friction'): (0.5669, 0.0000, 0.7664),
-    ('combined profile v2', 'hybrid_friction_nocls'): (0.8076, 0.0000, 0.7585),
-    ('combined profile v2', 'pseudo_fusion'): (0.6787, 0.0000, 0.6979),
-    ('combined profile v2', 'pseudo_fusion_kbe'): (1.5837, 0.0000, 0.3827),
-    ('combined profile v2', 'pseudo_fusion_dbe'): (0.7313, 0.0000, 0.8465),
-    ('combined profile v2', 'pseudo_fusion_wbe'): (1.0514, 0.0000, 0.6290),
-    ('combined profile v2', 'gnss_magnetometer'): (2.1982, 0.0000, 0.3054),
-    ('combined profile v2', 'ensemble'): (0.4774, 0.0000, 0.7521),
+    ('sensor errors v1 own s3', 'zero'): (0.5022, 0.0000, 0.0000),
+    ('sensor errors v1 own s3', 'linear_kf'): (0.5582, 0.0000, 0.8295),
+    ('sensor errors v1 own s3', 'kinematic_heuristic'): (2.7427, 0.0000, 0.1763),
+    ('sensor errors v1 own s3', 'dk_ekf'): (0.6016, 0.0000, 0.8334),
+    ('sensor errors v1 own s3', 'd_ekf'): (0.3604, 0.0000, 0.6978),
+    ('sensor errors v1 own s3', 'k_kf'): (1.2127, 0.0000, 0.0000),
+    ('sensor errors v1 own s3', 'hybrid_friction'): (1.1437, 0.0000, 0.5187),
+    ('sensor errors v1 own s3', 'hybrid_friction_nocls'): (1.0726, 0.0000, 0.5244),
+    ('sensor errors v1 own s3', 'pseudo_fusion'): (1.1030, 0.0000, 0.6414),
+    ('sensor errors v1 own s3', 'pseudo_fusion_kbe'): (2.2088, 0.0000, 0.1140),
+    ('sensor errors v1 own s3', 'pseudo_fusion_dbe'): (0.6417, 0.0000, 0.6713),
+    ('sensor errors v1 own s3', 'pseudo_fusion_wbe'): (1.3981, 0.0000, 0.3722),
+    ('sensor errors v1 own s3', 'gnss_magnetometer'): (3.6602, 0.0000, 0.1025),
+    ('sensor errors v1 own s3', 'ensemble'): (0.7774, 0.0000, 0.6932),
+    ('profile errors v2 s3', 'zero'): (0.4660, 0.0000, 0.0000),
+    ('profile errors v2 s3', 'linear_kf'): (0.6498, 0.0000, 0.7237),
+    ('profile errors v2 s3', 'kinematic_heuristic'): (1.3515, 0.0000, 0.3904),
+    ('profile errors v2 s3', 'dk_ekf'): (0.7613, 0.0000, 0.8815),
+    ('profile errors v2 s3', 'd_ekf'): (0.4745, 0.0000, 0.8794),
+    ('profile errors v2 s3', 'k_kf'): (1.1218, 0.0000, 0.0000),
+    ('profile errors v2 s3', 'hybrid_friction'): (0.5669, 0.0000, 0.7664),
+    ('profile errors v2 s3', 'hybrid_friction_nocls'): (0.8076, 0.0000, 0.7585),
+    ('profile errors v2 s3', 'pseudo_fusion'): (0.6787, 0.0000, 0.6979),
+    ('profile errors v2 s3', 'pseudo_fusion_kbe'): (1.5837, 0.0000, 0.3827),
+    ('profile errors v2 s3', 'pseudo_fusion_dbe'): (0.7313, 0.0000, 0.8465),
+    ('profile errors v2 s3', 'pseudo_fusion_wbe'): (1.0514, 0.0000, 0.6290),
+    ('profile errors v2 s3', 'gnss_magnetometer'): (2.1982, 0.0000, 0.3054),
+    ('profile errors v2 s3', 'ensemble'): (0.4774, 0.0000, 0.7521),
 }
+
+
+def _combined_short():
+    """benchmarks.accuracy's COMBINED cases that run here (COMBINED_SHORT)."""
+    from benchmarks.accuracy import COMBINED, COMBINED_SHORT
+
+    return [case for case in COMBINED if case.name in COMBINED_SHORT]
 
 
 @pytest.fixture(scope="module")
@@ -137,17 +144,14 @@ def blocks(tmp_path_factory) -> dict[str, list[LogCase]]:
             simulate_to_files(name, folder, seed=seed)
         found[f"sim s{seed}"] = [LogCase(n, folder / f"{n}.log", folder / f"{n}.truth.csv")
                                  for n in SCENARIOS]
-    # cases no method was tuned on (benchmarks.accuracy's ``combined`` block), short: five
-    # sensor errors at once on vehicle 1 with its own profile, five profile errors at once
-    from benchmarks.accuracy import SENSOR_ERRORS
-
-    for block, vehicle, seed, variants in (("combined sensors v1", 1, 3, SENSOR_ERRORS),
-                                           ("combined profile v2", 2, 3, None)):
-        folder = tmp_path_factory.mktemp(block.replace(" ", "_"))
+    # cases no method was tuned on (benchmarks.accuracy's ``combined`` block), short
+    for case in _combined_short():
+        folder = tmp_path_factory.mktemp(case.name.replace(" ", "_"))
         for name in SCENARIOS:
-            simulate_to_files(name, folder, vehicle=vehicle, seed=seed, variant=variants)
-        found[block] = [LogCase(n, folder / f"{n}.log", folder / f"{n}.truth.csv")
-                        for n in SCENARIOS]
+            simulate_to_files(name, folder, vehicle=case.vehicle, seed=case.seed,
+                              variant=case.variants)
+        found[case.name] = [LogCase(n, folder / f"{n}.log", folder / f"{n}.truth.csv")
+                            for n in SCENARIOS]
     if REAL_CSV.exists():
         from benchmarks.accuracy import REAL_IMPORT
         from slipd.profile import load_profile
@@ -164,18 +168,18 @@ def blocks(tmp_path_factory) -> dict[str, list[LogCase]]:
 
 @pytest.fixture(scope="module")
 def figures(blocks, tmp_path_factory) -> dict[tuple[str, str], tuple[float, float, float]]:
-    from benchmarks.accuracy import PROFILE_ERRORS
     from slipd.estimators.registry import available
-    from slipd.identify.truth import write_car_profile
     from slipd.profile import load_profile
 
-    own_v1 = write_car_profile(tmp_path_factory.mktemp("plant_v1") / "plant_v1.toml", 1)
-    profiles = {"real": REAL_PROFILE, "combined sensors v1": own_v1}
+    profiles = {"real": (REAL_PROFILE, None)}
+    folder = tmp_path_factory.mktemp("combined_profiles")
+    for case in _combined_short():
+        profiles[case.name] = (case.profile(folder), case.errors)
     methods = available()
     measured = {}
     for block, logs in blocks.items():
-        edit = PROFILE_ERRORS.edit() if block == "combined profile v2" else None
-        profile = load_profile(profiles.get(block, "default"), edit=edit)
+        path, errors = profiles.get(block, ("default", None))
+        profile = load_profile(path, edit=errors.edit() if errors else None)
         case, _, _ = evaluate_logs(logs, methods, profile)
         for m, acc in case.pooled.items():
             s = acc.scores()
