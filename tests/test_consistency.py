@@ -46,6 +46,13 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
         state["ay_lp"] += min(dt / params[P.AY_LOWPASS_TIME_CONSTANT], 1.0) * (
             ay_in - state["ay_lp"])
     ay_abs = abs(state["ay_lp"])
+    # the witness's own innovation level: every tick it runs and moves
+    witness_running = math.isfinite(witness[Out.STATUS]) and not (
+        int(witness[Out.STATUS]) & NOT_RUNNING) and math.isfinite(witness[Out.BETA])
+    witness_ratio = 0.0
+    if witness_running and witness[Out.VX] >= params[P.MIN_SPEED]:
+        witness_ratio = twin_innovation_ratio(state["witness_nis"], witness[Out.NIS], params,
+                                              dt)
     running = (status & NOT_RUNNING) == 0 and all(math.isfinite(v) for v in (vx, vy, beta))
     if not (running and imu_ok):
         state.update(anchored=False, free_run=0.0, flags=0)
@@ -82,25 +89,16 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
         sigma_d = alpha_lin * math.atanh(x) / x * (
             params[P.C_REL_UNCERTAINTY] + params[P.MU_REL_UNCERTAINTY] * sensitivity) + params[
             P.WITNESS_FLOOR]
-    dyn_err = 0.0
-    if moving and math.isfinite(witness[Out.STATUS]) and not (
-            int(witness[Out.STATUS]) & NOT_RUNNING) and math.isfinite(witness[Out.BETA]):
+    dyn_err, vouch_d = 0.0, sigma_d
+    if moving and witness_running:
+        # a witness far above its own innovation level vouches for less (sqrt of its ratio)
+        if params[P.WITNESS_NIS_SCALING] > 0.5 and witness_ratio > 1.0:
+            vouch_d = sigma_d * math.sqrt(witness_ratio)  # in the sigma, not in the score
         dyn_err = beta - witness[Out.BETA]
     dyn_score = abs(dyn_err) / sigma_d
     worst = max(kin_score, dyn_score)
     # the innovation test: the method's NIS over its own geometric-mean level
-    nis, ratio = out[Out.NIS], 0.0
-    if moving and math.isfinite(nis) and nis > 0.0:
-        gain = min(1.0, dt / params[P.NIS_LEVEL_TIME_CONSTANT])
-        log_nis = math.log(nis)
-        if state["nis_seen"] >= params[P.NIS_LEVEL_MIN_TIME]:  # an anomaly teaches it little
-            log_nis = min(log_nis, state["log_nis"] / state["nis_weight"]
-                          + state["nis_weight"] * math.log(params[P.NIS_LEVEL_CLIP_RATIO]))
-        state["log_nis"] += gain * (log_nis - state["log_nis"])
-        state["nis_weight"] += gain * (1.0 - state["nis_weight"])
-        state["nis_seen"] += dt
-        if state["nis_seen"] >= params[P.NIS_LEVEL_MIN_TIME]:
-            ratio = nis / math.exp(state["log_nis"] / state["nis_weight"])
+    ratio = twin_innovation_ratio(state["nis"], out[Out.NIS], params, dt) if moving else 0.0
     innovation = ratio > params[P.NIS_RATIO_WARN]
     fail = (speed_score > 1.0 or worst > params[P.N_SIGMA_FAIL]
             or ratio > params[P.NIS_RATIO_FAIL])
@@ -124,7 +122,7 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
     elif warn:
         status |= int(Status.DEGRADED)
     if math.isfinite(sigma_m):
-        out[Out.SIGMA_BETA] = math.sqrt(params[P.SIGMA_FLOOR] ** 2 + sigma_d ** 2 + sigma_m ** 2
+        out[Out.SIGMA_BETA] = math.sqrt(params[P.SIGMA_FLOOR] ** 2 + vouch_d ** 2 + sigma_m ** 2
                                         + 0.25 * (dyn_err ** 2 + kin_err ** 2))
         if out[Out.SIGMA_BETA] > params[P.VALID_MAX_SIGMA]:
             status = (status & ~int(Status.VALID)) | int(Status.DEGRADED)
@@ -132,9 +130,27 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
     state["flags"] = (1 | (4 if fail else 0) | (2 if warn else 0))
 
 
+def twin_innovation_ratio(level: dict, nis: float, params, dt: float) -> float:
+    """A filter's NIS over its own geometric-mean level (``level``: that filter's)."""
+    if not (math.isfinite(nis) and nis > 0.0):
+        return 0.0
+    gain = min(1.0, dt / params[P.NIS_LEVEL_TIME_CONSTANT])
+    log_nis = math.log(nis)
+    if level["seen"] >= params[P.NIS_LEVEL_MIN_TIME]:  # an anomaly teaches it little
+        log_nis = min(log_nis, level["log_sum"] / level["weight"]
+                      + level["weight"] * math.log(params[P.NIS_LEVEL_CLIP_RATIO]))
+    level["log_sum"] += gain * (log_nis - level["log_sum"])
+    level["weight"] += gain * (1.0 - level["weight"])
+    level["seen"] += dt
+    if level["seen"] < params[P.NIS_LEVEL_MIN_TIME]:
+        return 0.0
+    return nis / math.exp(level["log_sum"] / level["weight"])
+
+
 def new_twin_state() -> dict:
     return dict(d_yaw=None, ay_lp=None, anchored=False, kvx=0.0, kvy=0.0, free_run=0.0,
-                recovery=0.0, flags=0, log_nis=0.0, nis_weight=0.0, nis_seen=0.0)
+                recovery=0.0, flags=0, nis=dict(log_sum=0.0, weight=0.0, seen=0.0),
+                witness_nis=dict(log_sum=0.0, weight=0.0, seen=0.0))
 
 
 @pytest.fixture(scope="module")
@@ -214,6 +230,49 @@ def test_an_innovation_burst_clears_valid_and_a_noisier_car_does_not(drive):
     C.monitor_ticks(state, U[:650], out, none[:650], params, VEHICLE, np.full(650, 0.01))
     assert int(state[C.S.LAST_FLAGS]) & C.Flag.INNOVATION
     assert state[C.S.NIS_RATIO] > params[P.NIS_RATIO_FAIL]
+
+
+def test_monitor_kernel_agrees_with_its_plain_twin_on_the_witness_innovation(drive):
+    """kinematic_heuristic against a d_ekf witness whose NIS bursts."""
+    U, method_out, witness_out = drive
+    witness = _with_nis_burst(witness_out, 600, 700, 20.0)
+    out, plain = _agree(U, method_out, witness, C.default_params())
+    np.testing.assert_allclose(out[:, Out.SIGMA_BETA], plain[:, Out.SIGMA_BETA], rtol=1e-12)
+    assert np.array_equal(out[:, Out.STATUS], plain[:, Out.STATUS])
+
+
+def test_a_witness_whose_model_stops_explaining_the_measurements_vouches_for_less(drive):
+    """A method that agrees with a dynamic witness whose own innovations are 50 x the level
+    it keeps on this car (its tyre model beyond the road's friction: a slide on a wet road
+    that every model-based method underestimates together) is not VALID while that lasts
+    where the car corners: the witness's error scale grows with the root of its innovation
+    ratio, so the calibrated sigma leaves what VALID promises; VALID again after. Before,
+    agreement with the failing witness kept VALID (a held-out sine steer on mu 0.5: the
+    ensemble's VALID ticks 8-12 deg off)."""
+    U, _, witness_out = drive
+    params = C.default_params()
+    burst = _with_nis_burst(witness_out, 600, 700, 50.0)
+    out, _ = _agree(U, witness_out, burst, params)
+    valid = (out[:, Out.STATUS].astype(int) & Status.VALID) != 0
+    assert valid[550:600].all() and valid[750:].mean() > 0.95
+    # the witness's own scale is smallest where |ay| is (the slalom's zero crossings:
+    # WITNESS_FLOOR x sqrt(50) = 1.4 deg), so VALID is cleared where the car is cornering
+    cornering = np.abs(U[600:700, In.AY]) > 4.0
+    assert cornering.mean() > 0.5 and not valid[600:700][cornering].any()
+    state = C.new_state()
+    C.monitor_ticks(state, U[:650], witness_out[:650].copy(), burst[:650], params, VEHICLE,
+                    np.full(650, 0.01))
+    assert state[C.S.WITNESS_NIS_RATIO] > 30.0
+    params[P.WITNESS_NIS_SCALING] = 0.0  # the monitor before: the burst changes nothing
+    unscaled, _ = _agree(U, witness_out, burst, params)
+    assert ((unscaled[600:700, Out.STATUS].astype(int) & Status.VALID) != 0).all()
+
+
+def test_the_linear_witness_is_not_discounted_by_its_own_innovations():
+    """The linear witness (d_ekf's) is not: a linear tyre's innovations grow with the
+    utilisation on any road, a model error its sigma_D already carries."""
+    assert C.default_params(witness_linear=True)[P.WITNESS_NIS_SCALING] == 0.0
+    assert C.default_params()[P.WITNESS_NIS_SCALING] == 1.0
 
 
 def test_valid_needs_a_calibrated_sigma_within_what_valid_promises(drive):
