@@ -216,6 +216,20 @@ def test_wheel_speeds_show_slip():
 # --- scenarios, results, files ---------------------------------------------------------------
 
 
+def test_limit_scenarios_are_outside_the_suite_and_found_by_name():
+    """The limits block's manoeuvres run by name like any scenario but not in --suite."""
+    from slipd.sim.scenarios import LIMIT_SCENARIOS, find_scenario
+
+    assert set(LIMIT_SCENARIOS) == {"wet_handling", "skidpad_wet", "skidpad_dry",
+                                    "wet_sine_steer"}
+    assert not set(LIMIT_SCENARIOS) & set(SCENARIOS)
+    for name, scen in LIMIT_SCENARIOS.items():
+        assert find_scenario(name) is scen and len(scen.description) > 20
+        assert scen.build(2).legs
+    assert find_scenario("step_steer") is SCENARIOS["step_steer"]
+    assert find_scenario("nope") is None
+
+
 def test_scenario_suite_is_complete_and_documented():
     expected = {"step_steer", "double_lane_change", "slalom", "j_turn", "sine_steer",
                 "handling_high_mu", "handling_low_mu", "mu_jump", "straight_offsets",

@@ -218,14 +218,17 @@ def _print_variants(verbose: bool) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from slipd.sim.scenarios import SCENARIOS
+    from slipd.sim.scenarios import LIMIT_SCENARIOS, SCENARIOS, find_scenario
 
     if args.list or args.list_variants:
         if args.list:
-            width = max(len(n) for n in SCENARIOS)
+            width = max(len(n) for n in (*SCENARIOS, *LIMIT_SCENARIOS))
             for name, scen in SCENARIOS.items():
                 print(f"{name:{width}s}  {scen.duration:6.0f} s  {scen.paper}: "
                       f"{scen.description}")
+            print("\nat the limit, not in --suite (benchmarks.accuracy's limits block):")
+            for name, scen in LIMIT_SCENARIOS.items():
+                print(f"{name:{width}s}  {scen.duration:6.0f} s  {scen.description}")
             print("\nsensor variants (--variant NAME; --list-variants for settings and sources):")
         _print_variants(verbose=args.list_variants)
         return 0
@@ -245,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
                          outputs=outputs, sensor=sensor)
     if not args.scenario:
         raise ConfigError("name a SCENARIO (see slipd sim --list) or use --suite")
-    if args.scenario not in SCENARIOS:
+    if find_scenario(args.scenario) is None:
         raise ConfigError(f"unknown scenario {args.scenario!r}; see slipd sim --list")
     infos = simulate_variants_to_files(args.scenario, outputs, args.vehicle, args.seed,
                                        args.duration, args.profile, workers=max(1, args.jobs),

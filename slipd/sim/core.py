@@ -29,7 +29,14 @@ from slipd.sim.plant import (
     vehicle_parameters,
 )
 from slipd.sim.result import DEFAULT_MESSAGES, MessageSpec, SimResult, sample_messages
-from slipd.sim.scenarios import CRAWL, SCENARIOS, STOP_DECEL, Plan
+from slipd.sim.scenarios import (
+    CRAWL,
+    LIMIT_SCENARIOS,
+    SCENARIOS,
+    STOP_DECEL,
+    Plan,
+    find_scenario,
+)
 from slipd.sim.sensors import SensorConfig, sensor_channels, truth
 from slipd.sim.vehicle_data import DEFAULT_IMU_POSITION, DEFAULT_STEER_RATIO
 
@@ -64,7 +71,7 @@ def message_specs(profile) -> tuple[MessageSpec, ...]:
 def _leg_output(args) -> PlantOutput:
     """Integrate one leg from its own settled start (module-level: picklable for a pool)."""
     plan_name, vehicle, leg_index, leg_time, extra_mass = args
-    plan = SCENARIOS[plan_name].build(vehicle)
+    plan = find_scenario(plan_name).build(vehicle)
     leg = plan.legs[leg_index]
     p = vehicle_parameters(vehicle, extra_mass=extra_mass)
     return Plant(p, leg.road, leg.driver).run(leg_time, leg.start_speed, dt=DT)
@@ -149,7 +156,7 @@ def run_plan(
     a standstill starts from the crawl speed the pull-away ramp reaches), so ``workers`` > 1
     integrates them in parallel processes. Stops between legs are ramps and a parked car.
     """
-    plan = SCENARIOS[scenario].build(vehicle)
+    plan = find_scenario(scenario).build(vehicle)
     p = vehicle_parameters(vehicle, extra_mass=plan.extra_mass)
     legs = list(plan.legs)
     if duration is not None and len(legs) == 1:
@@ -335,12 +342,13 @@ def simulate_variants(
     sensors."""
     from slipd.sim.variants import resolve
 
-    if scenario not in SCENARIOS:
-        raise ConfigError(f"unknown scenario {scenario!r}; available: {', '.join(SCENARIOS)}")
+    if find_scenario(scenario) is None:
+        raise ConfigError(f"unknown scenario {scenario!r}; available: {', '.join(SCENARIOS)} "
+                          f"and, beyond the suite, {', '.join(LIMIT_SCENARIOS)}")
     if duration is not None and duration <= 0:
         raise ConfigError(f"duration must be positive, got {duration}")
     prof = _profile_or_none(profile)
-    plan = SCENARIOS[scenario].build(vehicle)
+    plan = find_scenario(scenario).build(vehicle)
     for spec in variants:  # refuse a bad name or setting before the integration
         _sensor_config(plan, prof, {**resolve(spec)[1], **(sensor or {})})
     plant = run_plan(scenario, vehicle, duration, progress, workers)

@@ -295,14 +295,66 @@ def endurance(vehicle: int) -> Plan:
     return Plan(legs)
 
 
+# --- at the limit, beyond the suite (benchmarks.accuracy's ``limits`` block) ---------------
+
+
+def wet_handling(vehicle: int) -> Plan:
+    """slipd, beyond the papers' tests: the handling track on a wet road (mu = 0.6) with
+    corners at 75-85 % of its grip (cars that spin there are reported, not simulated)."""
+    course = build_course(_handling_track(0.6, 1.08), start_speed=18.0, decel=2.0)
+    d = _course_driver(course, vehicle)
+    return Plan([Leg(course.road, d, min(90.0, _course_duration(course)), 18.0)])
+
+
+def _skidpad(mu: float, v_end: float) -> Plan:
+    v_start, steer, ramp_start, ramp = 6.0, 0.08, 3.0, 40.0
+
+    def speed(t: float, s: float) -> float:
+        return v_start + (v_end - v_start) * min(max((t - ramp_start) / ramp, 0.0), 1.0)
+
+    d = Driver(steer=drv.steer_pulses([(1.0, 1e9, steer, 1.0)]), speed_target=speed)
+    return Plan([Leg(Road(mu=np.array([mu])), d, 45.0, v_start)])
+
+
+def skidpad_wet(vehicle: int) -> Plan:
+    """slipd, beyond the papers' tests: a steady-state circle at a held steering angle (R ~ 33
+    m) with the speed ramped from 6 to 17 m/s over 40 s, through the limit of a wet road (mu =
+    0.6, ISO 4138's constant-steer-angle method)."""
+    return _skidpad(0.6, 17.0)
+
+
+def skidpad_dry(vehicle: int) -> Plan:
+    """slipd, beyond the papers' tests: the same constant-steer-angle circle on a dry road,
+    the speed ramped from 6 to 22 m/s through its limit."""
+    return _skidpad(MU_DRY, 22.0)
+
+
+def wet_sine_steer(vehicle: int) -> Plan:
+    """slipd, beyond the papers' tests: a sine steer (0.06 rad at the wheels, 0.4 Hz, four
+    periods) at 22 m/s on mu = 0.5: the car slides to 10+ deg of sideslip while every
+    model that assumes the profile's friction sees far less (consistency's docstring)."""
+    d = Driver(steer=drv.steer_sine(2.0, 0.06, 0.4, 4.0), speed_target=_const_speed(22.0))
+    return Plan([Leg(Road(mu=np.array([0.5])), d, 14.0, 22.0)])
+
+
 SCENARIOS: dict[str, Scenario] = {}
+#: manoeuvres at and beyond the limit of adhesion that are not in the suite (``slipd sim
+#: --suite``) and were in no block when the estimators were tuned: benchmarks.accuracy's
+#: ``limits`` block; ``slipd sim NAME`` runs each like any scenario
+LIMIT_SCENARIOS: dict[str, Scenario] = {}
 
 
-def _register(fn: Callable[[int], Plan], duration: float) -> None:
+def _register(fn: Callable[[int], Plan], duration: float,
+              into: dict[str, Scenario] = SCENARIOS) -> None:
     doc = (fn.__doc__ or "").strip()
     paper = " ".join(doc.split(":")[0].split())
     description = " ".join(doc.split(":", 1)[1].split()) if ":" in doc else doc
-    SCENARIOS[fn.__name__] = Scenario(fn.__name__, description, paper, fn, duration)
+    into[fn.__name__] = Scenario(fn.__name__, description, paper, fn, duration)
+
+
+def find_scenario(name: str) -> Scenario | None:
+    """The suite's or the limits' scenario ``name`` (None: neither has it)."""
+    return SCENARIOS.get(name) or LIMIT_SCENARIOS.get(name)
 
 
 for _fn, _dur in (
@@ -321,3 +373,6 @@ for _fn, _dur in (
     (endurance, 4000.0),
 ):
     _register(_fn, _dur)
+for _fn, _dur in ((wet_handling, 90.0), (skidpad_wet, 45.0), (skidpad_dry, 45.0),
+                  (wet_sine_steer, 14.0)):
+    _register(_fn, _dur, LIMIT_SCENARIOS)
