@@ -23,7 +23,8 @@ of VALID ticks more than 5 deg off, the 2-sigma coverage of sigma_beta, the VALI
   cases it was measured on.
 * ``limits``: manoeuvres at and beyond the limit of adhesion that the suite lacks
   (slipd.sim's ``LIMIT_SCENARIOS``: a wet handling track, constant-steer circles ramped
-  through the limit on a wet and a dry road, a sine steer on mu = 0.5 that slides to 12 deg),
+  through the limit on a wet and a dry road, a sine steer on mu = 0.5 that slides to 12 deg,
+  the suite's lane change, slalom and step steer on wet or snowy roads, a slow sine on ice),
   on vehicles 1-3 with their own profiles and sensor seed 6; a manoeuvre a car spins in is
   left out and listed. Added when they showed that agreeing witnesses can all be wrong at once
   (consistency's docstring): a block to keep honesty measured where the models are out of

@@ -221,7 +221,8 @@ def test_limit_scenarios_are_outside_the_suite_and_found_by_name():
     from slipd.sim.scenarios import LIMIT_SCENARIOS, find_scenario
 
     assert set(LIMIT_SCENARIOS) == {"wet_handling", "skidpad_wet", "skidpad_dry",
-                                    "wet_sine_steer"}
+                                    "wet_sine_steer", "wet_lane_change", "snow_slalom",
+                                    "icy_sine_steer", "wet_step_steer"}
     assert not set(LIMIT_SCENARIOS) & set(SCENARIOS)
     for name, scen in LIMIT_SCENARIOS.items():
         assert find_scenario(name) is scen and len(scen.description) > 20

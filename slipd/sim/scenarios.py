@@ -337,6 +337,46 @@ def wet_sine_steer(vehicle: int) -> Plan:
     return Plan([Leg(Road(mu=np.array([0.5])), d, 14.0, 22.0)])
 
 
+def wet_lane_change(vehicle: int) -> Plan:
+    """slipd, beyond the papers' tests: the ISO 3888-2 obstacle-avoidance lane change of
+    ``double_lane_change`` at 60 km/h on a wet road (mu = 0.5)."""
+    p = vehicle_parameters(vehicle)
+    x, y = drv.iso3888_2_centreline(p.w)
+    d = derived(vehicle)
+    pp = drv.PurePursuit(x, y, d["LF"] + d["LR"], understeer_gradient(vehicle),
+                         lookahead_time=0.5, min_lookahead=5.0)
+    speed = 60.0 * KPH
+    plant_driver = Driver(steer=pp, speed_target=_const_speed(speed))
+    return Plan([Leg(Road(mu=np.array([0.5])), plant_driver, 12.0, speed)], heading0=0.0)
+
+
+def snow_slalom(vehicle: int) -> Plan:
+    """slipd, beyond the papers' tests: the slalom of ``slalom`` (ten cones 20 m apart) at 45
+    km/h on packed snow (mu = 0.3)."""
+    x, y = drv.slalom_centreline(spacing=20.0, cones=10, amplitude=1.0)
+    d = derived(vehicle)
+    pp = drv.PurePursuit(x, y, d["LF"] + d["LR"], understeer_gradient(vehicle),
+                         lookahead_time=0.5, min_lookahead=5.0)
+    speed = 45.0 * KPH
+    plant_driver = Driver(steer=pp, speed_target=_const_speed(speed))
+    return Plan([Leg(Road(mu=np.array([0.3])), plant_driver, 19.0, speed)], heading0=0.0)
+
+
+def icy_sine_steer(vehicle: int) -> Plan:
+    """slipd, beyond the papers' tests: a slow sine steer (0.04 rad, 0.3 Hz, three periods) at
+    25 m/s on an icy road (mu = 0.35); the car keeps sliding after the wheel is straight."""
+    d = Driver(steer=drv.steer_sine(3.0, 0.04, 0.3, 3.0), speed_target=_const_speed(25.0))
+    return Plan([Leg(Road(mu=np.array([0.35])), d, 16.0, 25.0)])
+
+
+def wet_step_steer(vehicle: int) -> Plan:
+    """slipd, beyond the papers' tests: the step steer of ``step_steer`` (0.05 rad at 72 km/h,
+    held 6 s) on a wet road (mu = 0.6), which it asks beyond its grip."""
+    law = drv.steer_pulses([(2.0, 8.0, 0.05, 0.15)])
+    d = Driver(steer=law, speed_target=_const_speed(20.0))
+    return Plan([Leg(Road(mu=np.array([0.6])), d, 12.0, 20.0)])
+
+
 SCENARIOS: dict[str, Scenario] = {}
 #: manoeuvres at and beyond the limit of adhesion that are not in the suite (``slipd sim
 #: --suite``) and were in no block when the estimators were tuned: benchmarks.accuracy's
@@ -374,5 +414,6 @@ for _fn, _dur in (
 ):
     _register(_fn, _dur)
 for _fn, _dur in ((wet_handling, 90.0), (skidpad_wet, 45.0), (skidpad_dry, 45.0),
-                  (wet_sine_steer, 14.0)):
+                  (wet_sine_steer, 14.0), (wet_lane_change, 12.0), (snow_slalom, 19.0),
+                  (icy_sine_steer, 16.0), (wet_step_steer, 12.0)):
     _register(_fn, _dur, LIMIT_SCENARIOS)
