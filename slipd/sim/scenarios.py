@@ -95,29 +95,36 @@ def loaded_vehicle(vehicle: int) -> Plan:
     return _step_steer(vehicle, extra_mass=300.0)
 
 
-def double_lane_change(vehicle: int) -> Plan:
-    """Righetti & Lenzo 2025, section 4 (Fig. 5): ISO 3888-2 obstacle-avoidance lane change at
-    50 km/h, pure-pursuit path following on the cone-lane centre line."""
-    p = vehicle_parameters(vehicle)
-    x, y = drv.iso3888_2_centreline(p.w)
+def _path_following(vehicle: int, x: np.ndarray, y: np.ndarray, speed: float, road: Road,
+                    duration: float) -> Plan:
+    """Pure-pursuit path following of the centre line (x, y) at constant ``speed``."""
     d = derived(vehicle)
     pp = drv.PurePursuit(x, y, d["LF"] + d["LR"], understeer_gradient(vehicle),
                          lookahead_time=0.5, min_lookahead=5.0)
-    speed = 50.0 * KPH
     plant_driver = Driver(steer=pp, speed_target=_const_speed(speed))
-    return Plan([Leg(Road(), plant_driver, 12.0, speed)], heading0=0.0)
+    return Plan([Leg(road, plant_driver, duration, speed)], heading0=0.0)
+
+
+def _lane_change(vehicle: int, speed: float, road: Road) -> Plan:
+    x, y = drv.iso3888_2_centreline(vehicle_parameters(vehicle).w)
+    return _path_following(vehicle, x, y, speed, road, 12.0)
+
+
+def _slalom(vehicle: int, speed: float, road: Road) -> Plan:
+    x, y = drv.slalom_centreline(spacing=20.0, cones=10, amplitude=1.0)
+    return _path_following(vehicle, x, y, speed, road, 19.0)
+
+
+def double_lane_change(vehicle: int) -> Plan:
+    """Righetti & Lenzo 2025, section 4 (Fig. 5): ISO 3888-2 obstacle-avoidance lane change at
+    50 km/h, pure-pursuit path following on the cone-lane centre line."""
+    return _lane_change(vehicle, 50.0 * KPH, Road())
 
 
 def slalom(vehicle: int) -> Plan:
     """Righetti & Lenzo 2025, section 4 (Fig. 6): ten cones 20 m apart at 60 km/h, gates 10 m
     before the first and after the last cone; pure-pursuit path following."""
-    x, y = drv.slalom_centreline(spacing=20.0, cones=10, amplitude=1.0)
-    d = derived(vehicle)
-    pp = drv.PurePursuit(x, y, d["LF"] + d["LR"], understeer_gradient(vehicle),
-                         lookahead_time=0.5, min_lookahead=5.0)
-    speed = 60.0 * KPH
-    plant_driver = Driver(steer=pp, speed_target=_const_speed(speed))
-    return Plan([Leg(Road(), plant_driver, 19.0, speed)], heading0=0.0)
+    return _slalom(vehicle, 60.0 * KPH, Road())
 
 
 def j_turn(vehicle: int) -> Plan:
@@ -340,26 +347,13 @@ def wet_sine_steer(vehicle: int) -> Plan:
 def wet_lane_change(vehicle: int) -> Plan:
     """slipd, beyond the papers' tests: the ISO 3888-2 obstacle-avoidance lane change of
     ``double_lane_change`` at 60 km/h on a wet road (mu = 0.5)."""
-    p = vehicle_parameters(vehicle)
-    x, y = drv.iso3888_2_centreline(p.w)
-    d = derived(vehicle)
-    pp = drv.PurePursuit(x, y, d["LF"] + d["LR"], understeer_gradient(vehicle),
-                         lookahead_time=0.5, min_lookahead=5.0)
-    speed = 60.0 * KPH
-    plant_driver = Driver(steer=pp, speed_target=_const_speed(speed))
-    return Plan([Leg(Road(mu=np.array([0.5])), plant_driver, 12.0, speed)], heading0=0.0)
+    return _lane_change(vehicle, 60.0 * KPH, Road(mu=np.array([0.5])))
 
 
 def snow_slalom(vehicle: int) -> Plan:
     """slipd, beyond the papers' tests: the slalom of ``slalom`` (ten cones 20 m apart) at 45
     km/h on packed snow (mu = 0.3)."""
-    x, y = drv.slalom_centreline(spacing=20.0, cones=10, amplitude=1.0)
-    d = derived(vehicle)
-    pp = drv.PurePursuit(x, y, d["LF"] + d["LR"], understeer_gradient(vehicle),
-                         lookahead_time=0.5, min_lookahead=5.0)
-    speed = 45.0 * KPH
-    plant_driver = Driver(steer=pp, speed_target=_const_speed(speed))
-    return Plan([Leg(Road(mu=np.array([0.3])), plant_driver, 19.0, speed)], heading0=0.0)
+    return _slalom(vehicle, 45.0 * KPH, Road(mu=np.array([0.3])))
 
 
 def icy_sine_steer(vehicle: int) -> Plan:
