@@ -53,6 +53,11 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
     if witness_running and witness[Out.VX] >= params[P.MIN_SPEED]:
         witness_ratio = twin_innovation_ratio(state["witness_nis"], witness[Out.NIS], params,
                                               dt)
+    if params[P.WITNESS_NIS_SCALING] > 0.5:  # a witness not tracking vouches for nothing ...
+        if witness_ratio > params[P.NIS_RATIO_FAIL]:
+            state["witness_recovery"] = params[P.RECOVERY_TIME]
+        elif witness_ratio <= params[P.NIS_RATIO_WARN] and state["witness_recovery"] > 0.0:
+            state["witness_recovery"] = max(0.0, state["witness_recovery"] - dt)
     running = (status & NOT_RUNNING) == 0 and all(math.isfinite(v) for v in (vx, vy, beta))
     if not (running and imu_ok):
         state.update(anchored=False, free_run=0.0, flags=0)
@@ -117,6 +122,7 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
         if state["free_run"] <= 0.0:  # at most FREE_RUN_TIME unanchored: start from the method
             state["anchored"] = False
     fail = fail or state["recovery"] > 0.0
+    fail = fail or (moving and state["witness_recovery"] > 0.0)  # ... until it has recovered
     if fail:
         status = (status & ~int(Status.VALID)) | int(Status.DEGRADED)
     elif warn:
@@ -149,7 +155,8 @@ def twin_innovation_ratio(level: dict, nis: float, params, dt: float) -> float:
 
 def new_twin_state() -> dict:
     return dict(d_yaw=None, ay_lp=None, anchored=False, kvx=0.0, kvy=0.0, free_run=0.0,
-                recovery=0.0, flags=0, nis=dict(log_sum=0.0, weight=0.0, seen=0.0),
+                recovery=0.0, witness_recovery=0.0, flags=0,
+                nis=dict(log_sum=0.0, weight=0.0, seen=0.0),
                 witness_nis=dict(log_sum=0.0, weight=0.0, seen=0.0))
 
 
@@ -266,6 +273,25 @@ def test_a_witness_whose_model_stops_explaining_the_measurements_vouches_for_les
     params[P.WITNESS_NIS_SCALING] = 0.0  # the monitor before: the burst changes nothing
     unscaled, _ = _agree(U, witness_out, burst, params)
     assert ((unscaled[600:700, Out.STATUS].astype(int) & Status.VALID) != 0).all()
+
+
+def test_a_witness_that_is_not_tracking_vouches_for_nothing_until_it_has_recovered(drive):
+    """Beyond NIS_RATIO_FAIL (where a filter's own VALID is cleared) the witness vouches for
+    nothing, whatever |ay| (WITNESS flag), and it does so again only after RECOVERY_TIME back
+    within NIS_RATIO_WARN: a slide that outlasts the steering (an icy sine steer: the car still
+    6-7 deg sideways, the witness at 15-20 x its level and 0.9 deg, the DBE VALID 6 deg off)."""
+    U, _, witness_out = drive
+    params = C.default_params()
+    burst = _with_nis_burst(witness_out, 600, 700, 500.0)
+    burst[700:800, Out.NIS] *= 20.0  # the tail: above WARN, below FAIL
+    out, _ = _agree(U, witness_out, burst, params)
+    valid = (out[:, Out.STATUS].astype(int) & Status.VALID) != 0
+    assert valid[550:600].all() and not valid[600:845].any()  # 800 + RECOVERY_TIME
+    assert valid[900:].mean() > 0.95
+    state = C.new_state()
+    C.monitor_ticks(state, U[:750], witness_out[:750].copy(), burst[:750], params, VEHICLE,
+                    np.full(750, 0.01))
+    assert int(state[C.S.LAST_FLAGS]) & C.Flag.WITNESS
 
 
 def test_the_linear_witness_is_not_discounted_by_its_own_innovations():

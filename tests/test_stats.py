@@ -572,12 +572,15 @@ def test_consistency_verdicts_are_counted_and_served_per_estimator(tmp_path):
                                  prometheus="127.0.0.1:0"), bus=bus, log=lambda _line: None)
     ticks = [0]
 
-    def verdict(_state) -> int:  # 20 ticks FAIL (with WARN), 15 WARN, then consistent
+    def verdict(_state) -> int:  # 20 ticks FAIL (with WARN), 15 WARN, 7 FAIL (witness), then
+        #                        consistent
         ticks[0] += 1
         k = ticks[0]
         if 10 <= k < 30:
             return Flag.CHECKED | Flag.FAIL | Flag.WARN | Flag.DYNAMIC | (
                 Flag.IMPRECISE if k < 15 else 0)
+        if 45 <= k < 52:
+            return Flag.CHECKED | Flag.FAIL | Flag.WITNESS
         return Flag.CHECKED | (Flag.WARN | Flag.INNOVATION if 30 <= k < 45 else 0)
 
     daemon.pipeline.consistency_flags = verdict
@@ -595,14 +598,16 @@ def test_consistency_verdicts_are_counted_and_served_per_estimator(tmp_path):
 
     _run_with_client(daemon, ask, bus)
     counters = served["snapshot"]["counters"]
-    assert counters["consistency_fail_ticks"] == 20
+    assert counters["consistency_fail_ticks"] == 27
     assert counters["consistency_warn_ticks"] == 35
     assert counters["consistency_innovation_ticks"] == 15
     assert counters["consistency_imprecise_ticks"] == 5
+    assert counters["consistency_witness_ticks"] == 7
     families = {f.name: f for f in text_string_to_metric_families(served["metrics"])}
-    for name, value in (("slipd_consistency_fail_ticks", 20), ("slipd_consistency_warn_ticks", 35),
+    for name, value in (("slipd_consistency_fail_ticks", 27), ("slipd_consistency_warn_ticks", 35),
                         ("slipd_consistency_innovation_ticks", 15),
-                        ("slipd_consistency_imprecise_ticks", 5)):
+                        ("slipd_consistency_imprecise_ticks", 5),
+                        ("slipd_consistency_witness_ticks", 7)):
         (sample,) = families[name].samples
         assert sample.labels == {"estimator": "kinematic_heuristic"} and sample.value == value
 

@@ -53,13 +53,14 @@ from slipd.estimators.consistency import Flag
 from slipd.pipeline import TICK_DT, Pipeline, catch_up_steps
 from slipd.profile import Profile
 
-#: the monitor's verdicts counted per tick, and the two checks counted on their own (which
-#: one cleared VALID: the filter's innovation test, or a calibrated sigma beyond what VALID
-#: promises)
+#: the monitor's verdicts counted per tick, and three checks counted on their own (which
+#: one cleared VALID: the filter's innovation test, a calibrated sigma beyond what VALID
+#: promises, or a dynamic witness not tracking)
 CONSISTENCY_COUNTED = (
     (int(Flag.FAIL), "consistency_fail_ticks"), (int(Flag.WARN), "consistency_warn_ticks"),
     (int(Flag.INNOVATION), "consistency_innovation_ticks"),
     (int(Flag.IMPRECISE), "consistency_imprecise_ticks"),
+    (int(Flag.WITNESS), "consistency_witness_ticks"),
 )
 REOPEN_INTERVAL = 1.0  # s between attempts to reopen a vanished interface
 PERSIST_INTERVAL = 60.0  # s

@@ -95,10 +95,11 @@ COUNTERS = ("ticks", "deadline_misses", "input_timeouts", "tx_errors", "rx_frame
             "rx_overflows", "rx_malformed", "valid_ticks", "gc_full_collections",
             "recorder_errors", "stats_server_restarts", "clock_steps",
             "consistency_fail_ticks", "consistency_warn_ticks", "consistency_innovation_ticks",
-            "consistency_imprecise_ticks")
+            "consistency_imprecise_ticks", "consistency_witness_ticks")
 #: counters of the running estimator's own (Prometheus gives them an ``estimator`` label)
 PER_ESTIMATOR = ("consistency_fail_ticks", "consistency_warn_ticks",
-                 "consistency_innovation_ticks", "consistency_imprecise_ticks")
+                 "consistency_innovation_ticks", "consistency_imprecise_ticks",
+                 "consistency_witness_ticks")
 GAUGES = ("status", "beta_deg", "vx_mps", "uptime_s")
 RX_IDS_KEPT = 512  # CAN IDs counted one by one in the block; the rest are summed
 

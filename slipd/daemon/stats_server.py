@@ -72,6 +72,8 @@ COUNTER_HELP = {
                                     "beyond its level (DEGRADED, VALID cleared far beyond)",
     "consistency_imprecise_ticks": "ticks the calibrated sigma_beta was beyond what VALID "
                                    "promises (VALID cleared)",
+    "consistency_witness_ticks": "ticks the dynamic witness was not tracking (its own "
+                                 "innovation test far beyond its level): VALID cleared",
 }
 
 
