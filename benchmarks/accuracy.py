@@ -100,11 +100,15 @@ class CombinedCase(NamedTuple):
     def profile(self, folder: Path) -> str:
         """The profile the case's logs are evaluated with (the car's own written to
         ``folder``)."""
-        if not self.own_profile:
-            return "default"
-        from slipd.identify.truth import write_car_profile
+        return own_profile(folder, self.vehicle) if self.own_profile else "default"
 
-        return str(write_car_profile(folder / f"plant_v{self.vehicle}.toml", self.vehicle))
+
+def own_profile(folder: Path, vehicle: int) -> str:
+    """The simulator's car ``vehicle`` as a profile (its geometry, mass, axle cornering and
+    roll stiffnesses: ``slipd.identify.truth.write_car_profile``), written to ``folder``."""
+    from slipd.identify.truth import write_car_profile
+
+    return str(write_car_profile(folder / f"plant_v{vehicle}.toml", vehicle))
 
 
 #: the ``combined`` block's cases
@@ -358,14 +362,12 @@ def main(argv: list[str] | None = None) -> int:
             order.append("real")
             jobs.append(("real", [real], methods, str(REAL_PROFILE), None, None))
     if "plants" in blocks:
-        from slipd.identify.truth import write_car_profile
-
         order += ["plants own", "plants default"]
         for vehicle in OTHER_VEHICLES:
             logs = suite_logs(simulate_suite(args.cache / f"plant_v{vehicle}_s0", 0,
                                              vehicle=vehicle))
-            own = write_car_profile(args.cache / f"plant_v{vehicle}.toml", vehicle)
-            jobs.append(("plants own", logs, methods, str(own), None, None))
+            jobs.append(("plants own", logs, methods, own_profile(args.cache, vehicle), None,
+                         None))
             jobs.append(("plants default", logs, methods, "default", None, None))
     if "combined" in blocks:
         order.append("combined")
@@ -381,9 +383,8 @@ def main(argv: list[str] | None = None) -> int:
         for vehicle in LIMITS_VEHICLES:
             folder = simulate_limits(args.cache / f"limits_v{vehicle}_s{LIMITS_SEED}",
                                      LIMITS_SEED, vehicle)
-            case = CombinedCase(f"limits v{vehicle}", LIMITS_SEED, None, vehicle, True, None)
-            jobs.append(("limits", suite_logs(folder), methods, case.profile(args.cache), None,
-                         case.name))
+            jobs.append(("limits", suite_logs(folder), methods, own_profile(args.cache, vehicle),
+                         None, f"limits v{vehicle}"))
 
     results: dict[str, list[CaseResult]] = {b: [] for b in order}
     wall: dict[str, float] = dict.fromkeys(order, 0.0)

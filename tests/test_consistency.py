@@ -53,7 +53,7 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
     if witness_running and witness[Out.VX] >= params[P.MIN_SPEED]:
         witness_ratio = twin_innovation_ratio(state["witness_nis"], witness[Out.NIS], params,
                                               dt)
-    if params[P.WITNESS_NIS_SCALING] > 0.5:  # a witness not tracking vouches for nothing ...
+    if params[P.WITNESS_INNOVATION_TEST] > 0.5:  # a witness not tracking vouches for nothing ...
         if witness_ratio > params[P.NIS_RATIO_FAIL]:
             state["witness_recovery"] = params[P.RECOVERY_TIME]
         elif witness_ratio <= params[P.NIS_RATIO_WARN] and state["witness_recovery"] > 0.0:
@@ -97,7 +97,7 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
     dyn_err, vouch_d = 0.0, sigma_d
     if moving and witness_running:
         # a witness far above its own innovation level vouches for less (sqrt of its ratio)
-        if params[P.WITNESS_NIS_SCALING] > 0.5 and witness_ratio > 1.0:
+        if params[P.WITNESS_INNOVATION_TEST] > 0.5 and witness_ratio > 1.0:
             vouch_d = sigma_d * math.sqrt(witness_ratio)  # in the sigma, not in the score
         dyn_err = beta - witness[Out.BETA]
     dyn_score = abs(dyn_err) / sigma_d
@@ -270,7 +270,7 @@ def test_a_witness_whose_model_stops_explaining_the_measurements_vouches_for_les
     C.monitor_ticks(state, U[:650], witness_out[:650].copy(), burst[:650], params, VEHICLE,
                     np.full(650, 0.01))
     assert state[C.S.WITNESS_NIS_RATIO] > 30.0
-    params[P.WITNESS_NIS_SCALING] = 0.0  # the monitor before: the burst changes nothing
+    params[P.WITNESS_INNOVATION_TEST] = 0.0  # the monitor before: the burst changes nothing
     unscaled, _ = _agree(U, witness_out, burst, params)
     assert ((unscaled[600:700, Out.STATUS].astype(int) & Status.VALID) != 0).all()
 
@@ -297,8 +297,8 @@ def test_a_witness_that_is_not_tracking_vouches_for_nothing_until_it_has_recover
 def test_the_linear_witness_is_not_discounted_by_its_own_innovations():
     """The linear witness (d_ekf's) is not: a linear tyre's innovations grow with the
     utilisation on any road, a model error its sigma_D already carries."""
-    assert C.default_params(witness_linear=True)[P.WITNESS_NIS_SCALING] == 0.0
-    assert C.default_params()[P.WITNESS_NIS_SCALING] == 1.0
+    assert C.default_params(witness_linear=True)[P.WITNESS_INNOVATION_TEST] == 0.0
+    assert C.default_params()[P.WITNESS_INNOVATION_TEST] == 1.0
 
 
 def test_valid_needs_a_calibrated_sigma_within_what_valid_promises(drive):

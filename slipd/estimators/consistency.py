@@ -45,7 +45,7 @@ ways (DESIGN.md, "What VALID means"):
   kept on every tick the witness runs whatever the method does) gives the ratio r_W, and
   in the calibrated sigma its error scale is sigma_D sqrt(max(1, r_W)) (covariance matching:
   innovations r_W times their level, an error scale sqrt(r_W) times its own;
-  ``WITNESS_NIS_SCALING``). The disagreement is still scored against sigma_D (which of the
+  ``WITNESS_INNOVATION_TEST``). The disagreement is still scored against sigma_D (which of the
   two is wrong is not known, so a failing witness may not fail a method less). Found on
   manoeuvres no block of benchmarks.accuracy had (a sine steer on mu 0.5 at 22 m/s, beta
   to -12 deg): every model-based method underestimated the slide by 7-12 deg together with
@@ -190,7 +190,7 @@ PARAMS, DEFAULTS = build_params(
     ("NIS_RATIO_WARN", 10.0),  # NIS / level beyond which DEGRADED is set
     ("NIS_RATIO_FAIL", 100.0),  # and beyond which VALID is cleared
     ("NIS_LEVEL_CLIP_RATIO", 10.0),  # the level rises at most this factor per time constant
-    ("WITNESS_NIS_SCALING", 1.0),  # 1: the witness's own innovation test: sigma_D x sqrt(its
+    ("WITNESS_INNOVATION_TEST", 1.0),  # 1: the witness's own innovation test: sigma_D x sqrt(its
     #                    ratio) in the calibrated sigma, and nothing vouched for beyond
     #                    NIS_RATIO_FAIL until RECOVERY_TIME within NIS_RATIO_WARN (0 for the
     #                    linear witness: default_params)
@@ -368,7 +368,7 @@ def monitor(state, u, out, witness, params, vehicle, dt):
     state[S.WITNESS_NIS_RATIO] = witness_ratio
     # a witness plainly not tracking (beyond NIS_RATIO_FAIL, where a filter's own VALID is
     # cleared) vouches for nothing until it has been within NIS_RATIO_WARN for RECOVERY_TIME
-    if params[PARAMS.WITNESS_NIS_SCALING] > 0.5:
+    if params[PARAMS.WITNESS_INNOVATION_TEST] > 0.5:
         if witness_ratio > params[PARAMS.NIS_RATIO_FAIL]:
             state[S.WITNESS_RECOVERY] = params[PARAMS.RECOVERY_TIME]
         elif witness_ratio <= params[PARAMS.NIS_RATIO_WARN] and state[S.WITNESS_RECOVERY] > 0.0:
@@ -427,7 +427,7 @@ def monitor(state, u, out, witness, params, vehicle, dt):
         # spin) vouches for less: its error scale grows as the root of its innovation ratio.
         # A disagreement with it still counts at its scale at the level: which of the two is
         # wrong is not known, so it may not fail a method less than before
-        if params[PARAMS.WITNESS_NIS_SCALING] > 0.5 and witness_ratio > 1.0:
+        if params[PARAMS.WITNESS_INNOVATION_TEST] > 0.5 and witness_ratio > 1.0:
             vouch_d = sigma_d * math.sqrt(witness_ratio)
         dyn_error = beta - witness[Out.BETA]
         dyn_score = abs(dyn_error) / sigma_d
@@ -510,7 +510,7 @@ def default_params(witness_linear: bool = False) -> np.ndarray:
         # a linear tyre's innovations grow with the utilisation on any road: that model error
         # is already in its sigma_D (atanh(x) / x - 1), not news of a model that stopped
         # explaining the measurements (measured: d_ekf VALID on 80 % of the real run with it)
-        params[PARAMS.WITNESS_NIS_SCALING] = 0.0
+        params[PARAMS.WITNESS_INNOVATION_TEST] = 0.0
     return params
 
 
