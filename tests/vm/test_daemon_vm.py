@@ -155,7 +155,7 @@ sleep 2
 step link_up ip link set vcan0 up
 sleep 2.5
 start_candump "$O/bus2.log"
-step play_after_up canplayer -I "$R/recovery.log" vcan0=can0
+step play_after_up canplayer -I "$R/drive.log" vcan0=can0
 step stats_up python "$R/stats.py" $SOCK "$O/stats_up.json" 0 2
 kill $DUMP
 
@@ -164,7 +164,7 @@ sleep 2
 step link_recreate bash -c 'ip link add dev vcan0 type vcan && ip link set up vcan0'
 sleep 2.5
 start_candump "$O/bus3.log"
-step play_after_recreate canplayer -I "$R/recovery.log" vcan0=can0
+step play_after_recreate canplayer -I "$R/drive.log" vcan0=can0
 step stats_final python "$R/stats.py" $SOCK "$O/stats_final.json" 0 2
 kill $DUMP
 
@@ -197,7 +197,8 @@ def _encode(codec: Codec, name: str, values: dict, counter: int) -> bytes:
 
 
 def prepare_logs(run_dir: Path) -> dict:
-    """drive.log and recovery.log (simulated), malformed.log, the cansend commands."""
+    """drive.log (simulated; played first and again after each link recovery), malformed.log,
+    the cansend commands."""
     from slipd.sim import simulate
     from slipd.sim.writer import write_log
 
@@ -207,9 +208,6 @@ def prepare_logs(run_dir: Path) -> dict:
         run_dir / "drive.log",
         simulate("double_lane_change", duration=8.0, profile=profile),
         profile,
-    )
-    write_log(
-        run_dir / "recovery.log", simulate("step_steer", duration=6.0, profile=profile), profile
     )
 
     codec = Codec(profile)
@@ -471,9 +469,12 @@ def test_link_down_up_and_delete_recreate_recover_without_restart(story: Story) 
     for bus_log, step in (("bus2.log", "play_after_up"), ("bus3.log", "play_after_recreate")):
         story.step_ok(step)
         _, status, _ = state_frames(story.frames(bus_log))
-        # the inputs are decoded and fresh again (the 6 s drive played after the recovery), and
-        # the estimate is trusted again at times: how often is the consistency monitor's call
-        # on this short drive (kinematic_heuristic is VALID on ~40 % of the suite's ticks)
+        # the inputs are decoded and fresh again (the 8 s drive played after the recovery), and
+        # the estimate is trusted again at times: how often is the consistency monitor's call.
+        # Replayed on the host, kinematic_heuristic is VALID on 220-240 of this drive's 800
+        # ticks at GUEST_RATE_HZ (60-70 on sensor seeds 2 and 3); on the 6 s step steer this test
+        # played before, on 0-6 of 600 (its monitor judges the dynamic witness, whose
+        # innovations at the step, inputs held 0.1 s, are 16-23 x their level): a coin toss
         fresh = np.count_nonzero((status & ST_INPUT_TIMEOUT) == 0)
         assert fresh >= 300, f"inputs not fresh after the recovery in {bus_log}: {fresh} ticks"
         assert np.count_nonzero(status & ST_VALID) >= 1, f"no valid outputs in {bus_log}"
