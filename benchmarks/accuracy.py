@@ -29,6 +29,11 @@ of VALID ticks more than 5 deg off, the 2-sigma coverage of sigma_beta, the VALI
   left out and listed. Added when they showed that agreeing witnesses can all be wrong at once
   (consistency's docstring): a block to keep honesty measured where the models are out of
   their depth.
+* ``snippets``: the suite's seed-1 drives and the limits block's, replayed from
+  :data:`SNIPPET_STARTS` seconds into the drive (the long endurance and straight-offsets
+  drives aside): a researcher's cut of a longer log, a daemon started mid-manoeuvre. Every
+  learnt level starts fresh inside a manoeuvre; added when it showed that a level learnt from
+  a drive's first seconds learnt the manoeuvre (consistency's docstring).
 
 The summary matrices repeat the beta RMS without the snow_drift scenario (:data:`ASIDE`),
 the figure issue 17's "no method above 2 deg pooled (snow drift aside)" is about. Two tables
@@ -40,7 +45,8 @@ method's RMS over zero's, so < 1 is better than not estimating at all. Logs are 
 into ``--cache`` (default runs/accuracy) and reused; delete the folder to regenerate.
 
     .venv/bin/python -m benchmarks.accuracy
-        [--blocks suite,mismatch,variants,real,plants,combined,limits] [--estimator all|a,b]
+        [--blocks suite,mismatch,variants,real,plants,combined,limits,snippets]
+        [--estimator all|a,b]
         [--jobs 2] [--json OUT.json] [--cache DIR]
 
 A parameter is measured against its default by naming the method with it set beside the
@@ -74,7 +80,7 @@ REAL_IMPORT = dict(
     truth=["beta=beta_rad,vx=vx_mps,vy=vy_mps,yaw_rate=yaw_rate_radps"],
 )
 SEEDS = (0, 1)
-BLOCKS = ("suite", "mismatch", "variants", "real", "plants", "combined", "limits")
+BLOCKS = ("suite", "mismatch", "variants", "real", "plants", "combined", "limits", "snippets")
 #: the simulator's cars other than the suite's (vehicle 2): the ``plants`` blocks
 OTHER_VEHICLES = (1, 3)
 #: the sensor variants the ``combined`` block's first cases apply together (slipd.sim.variants)
@@ -123,6 +129,11 @@ COMBINED: tuple[CombinedCase, ...] = (
 #: slipd.sim's LIMIT_SCENARIOS, a seed no other block uses
 LIMITS_VEHICLES = (1, 2, 3)
 LIMITS_SEED = 6
+#: the ``snippets`` block: seconds into a drive its replays start from, the least a snippet
+#: keeps, and the drives too long for a cut near their start to matter
+SNIPPET_STARTS = (2.0, 5.0, 9.0)
+SNIPPET_MIN_SECONDS = 5.0
+SNIPPET_SKIP = ("endurance", "straight_offsets")
 #: the combined cases ``make test``'s accuracy regression runs on its short scenarios
 COMBINED_SHORT = ("sensor errors v1 own s3", "profile errors v2 s3")
 #: the scenario issue 17's "no method above 2 deg pooled (snow drift aside)" leaves out: a
@@ -167,6 +178,34 @@ def simulate_limits(folder: Path, seed: int, vehicle: int) -> Path:
                            f"{vehicle}")
     (folder / ".complete").touch()
     return folder
+
+
+def snippets(logs: list[LogCase], folder: Path) -> list[LogCase]:
+    """Each of ``logs`` replayed from each of SNIPPET_STARTS seconds after its first frame
+    (written once into ``folder`` as NAME@STARTs.log), scored against its whole truth (the
+    evaluation interpolates the truth at each tick's time); a start that leaves less than
+    SNIPPET_MIN_SECONDS of drive is left out."""
+    from slipd.replay.candump import read_candump, write_candump
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cut: list[LogCase] = []
+    for case in logs:
+        frames = None
+        for start in SNIPPET_STARTS:
+            name = f"{case.name}@{start:g}s"
+            path = folder / f"{name}.log"
+            if not path.exists():
+                if frames is None:
+                    frames = read_candump(case.log)
+                if frames.t[-1] - frames.t[0] < start + SNIPPET_MIN_SECONDS:
+                    continue
+                keep = frames.t >= frames.t[0] + start
+                temporary = path.with_suffix(".part")
+                write_candump(temporary, frames.t[keep], frames.frame_id[keep],
+                              frames.data[keep], dlc=frames.dlc[keep])
+                temporary.replace(path)
+            cut.append(LogCase(name, path, case.truth))
+    return cut
 
 
 def import_real(folder: Path) -> LogCase | None:
@@ -385,6 +424,20 @@ def main(argv: list[str] | None = None) -> int:
                                      LIMITS_SEED, vehicle)
             jobs.append(("limits", suite_logs(folder), methods, own_profile(args.cache, vehicle),
                          None, f"limits v{vehicle}"))
+
+    if "snippets" in blocks:
+        order.append("snippets")
+        suite = [c for c in suite_logs(simulate_suite(args.cache / "suite_s1", 1))
+                 if c.name not in SNIPPET_SKIP]
+        jobs.append(("snippets", snippets(suite, args.cache / "snippets_suite_s1"), methods,
+                     "default", None, "snippets suite s1"))
+        for vehicle in LIMITS_VEHICLES:
+            folder = simulate_limits(args.cache / f"limits_v{vehicle}_s{LIMITS_SEED}",
+                                     LIMITS_SEED, vehicle)
+            jobs.append(("snippets", snippets(suite_logs(folder), args.cache
+                                              / f"snippets_limits_v{vehicle}_s{LIMITS_SEED}"),
+                         methods, own_profile(args.cache, vehicle), None,
+                         f"snippets limits v{vehicle}"))
 
     results: dict[str, list[CaseResult]] = {b: [] for b in order}
     wall: dict[str, float] = dict.fromkeys(order, 0.0)

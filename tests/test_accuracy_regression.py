@@ -1,7 +1,9 @@
 """Accuracy regression in ``make test``: every estimator on short simulated scenarios (two
 sensor seeds), on the same scenarios under two of benchmarks.accuracy's ``combined`` cases (five
 sensor errors at once on vehicle 1 with its own profile, five profile errors at once; sensor
-seed 3) and on the real run of ../shared/realdata, through the codec like the product.
+seed 3), on the ``limits`` block's wet sine steer whole and replayed from 2, 5 and 9 s into
+the drive (``snippets``), and on the real run of ../shared/realdata, through the codec like
+the product.
 
 The thresholds are the figures measured on this code (``MEASURED``) plus 10 % (beta RMS) or
 half a percentage point (VALID ticks more than 5 deg off), and minus two percentage points of
@@ -31,6 +33,7 @@ SEEDS = (0, 1)
 #: the ``limits`` block's manoeuvre the regression runs (on vehicle 2, the default profile's)
 LIMITS_SHORT = ("wet_sine_steer",)
 LIMITS_BLOCK = "limits v2"
+SNIPPETS_BLOCK = "snippets limits v2"
 RMS_MARGIN = 1.10
 RMS_SLACK_DEG = 0.01  # quantisation-level changes of tiny figures do not fail
 OVER_5DEG_SLACK = 0.005
@@ -59,92 +62,113 @@ REAL_PROFILE = Path(__file__).resolve().parents[1] / "examples/revs_250lm/ferrar
 #: added the same day, after that change: before it, 9.5-42.8 % of the VALID ticks of
 #: hybrid_friction, pseudo_fusion and its DBE and KBE, kinematic_heuristic and the ensemble
 #: there were more than 5 deg off; this block fails with that change undone; again after the
-#: witness vouches for nothing beyond NIS_RATIO_FAIL until it has recovered).
+#: witness vouches for nothing beyond NIS_RATIO_FAIL until it has recovered; every method but
+#: zero and k_kf again on 2026-12-06 after a fresh level starts at the prior and rises at most
+#: tenfold per time constant from the first tick: a car whose NIS is far above 1 now takes that
+#: long to teach it, which these 10-19 s drives do not last (linear_kf 70 -> 14 % on seed 0,
+#: 82 -> 0 % with the sensor errors; d_ekf 90 -> 86 % on seed 1, 70 -> 65 % with the sensor
+#: errors; the ensemble 68 -> 54 % there), while on logs replayed from 2-9 s into a slide up
+#: to 100 % of a method's VALID ticks were more than 5 deg off before (the snippets block,
+#: which fails with that change undone).
 MEASURED: dict[tuple[str, str], tuple[float, float, float]] = {
     ('sim s0', 'zero'): (0.4660, 0.0000, 0.0000),
-    ('sim s0', 'linear_kf'): (0.4857, 0.0000, 0.7043),
-    ('sim s0', 'kinematic_heuristic'): (0.4446, 0.0000, 0.5551),
-    ('sim s0', 'dk_ekf'): (0.6313, 0.0000, 0.7267),
-    ('sim s0', 'd_ekf'): (0.4533, 0.0000, 0.8346),
+    ('sim s0', 'linear_kf'): (0.4857, 0.0000, 0.1389),
+    ('sim s0', 'kinematic_heuristic'): (0.4446, 0.0000, 0.5487),
+    ('sim s0', 'dk_ekf'): (0.6313, 0.0000, 0.7211),
+    ('sim s0', 'd_ekf'): (0.4533, 0.0000, 0.8343),
     ('sim s0', 'k_kf'): (0.9532, 0.0000, 0.0000),
-    ('sim s0', 'hybrid_friction'): (0.6926, 0.0000, 0.6827),
-    ('sim s0', 'hybrid_friction_nocls'): (0.6958, 0.0000, 0.6600),
-    ('sim s0', 'pseudo_fusion'): (0.5007, 0.0000, 0.6960),
-    ('sim s0', 'pseudo_fusion_kbe'): (1.1723, 0.0000, 0.5171),
-    ('sim s0', 'pseudo_fusion_dbe'): (0.7367, 0.0000, 0.6954),
-    ('sim s0', 'pseudo_fusion_wbe'): (0.8958, 0.0000, 0.5165),
-    ('sim s0', 'gnss_magnetometer'): (0.9820, 0.0000, 0.4937),
-    ('sim s0', 'ensemble'): (0.4333, 0.0000, 0.6963),
+    ('sim s0', 'hybrid_friction'): (0.6926, 0.0000, 0.6782),
+    ('sim s0', 'hybrid_friction_nocls'): (0.6958, 0.0000, 0.6560),
+    ('sim s0', 'pseudo_fusion'): (0.5007, 0.0000, 0.6909),
+    ('sim s0', 'pseudo_fusion_kbe'): (1.1723, 0.0000, 0.5134),
+    ('sim s0', 'pseudo_fusion_dbe'): (0.7367, 0.0000, 0.6902),
+    ('sim s0', 'pseudo_fusion_wbe'): (0.8958, 0.0000, 0.5120),
+    ('sim s0', 'gnss_magnetometer'): (0.9820, 0.0000, 0.4920),
+    ('sim s0', 'ensemble'): (0.4333, 0.0000, 0.6911),
     ('sim s1', 'zero'): (0.4660, 0.0000, 0.0000),
-    ('sim s1', 'linear_kf'): (0.4872, 0.0000, 0.7116),
-    ('sim s1', 'kinematic_heuristic'): (0.7544, 0.0000, 0.3890),
-    ('sim s1', 'dk_ekf'): (0.6476, 0.0000, 0.7319),
-    ('sim s1', 'd_ekf'): (0.4071, 0.0000, 0.8964),
+    ('sim s1', 'linear_kf'): (0.4872, 0.0000, 0.1910),
+    ('sim s1', 'kinematic_heuristic'): (0.7544, 0.0000, 0.3845),
+    ('sim s1', 'dk_ekf'): (0.6476, 0.0000, 0.7260),
+    ('sim s1', 'd_ekf'): (0.4071, 0.0000, 0.8624),
     ('sim s1', 'k_kf'): (1.0695, 0.0000, 0.0000),
-    ('sim s1', 'hybrid_friction'): (0.4356, 0.0000, 0.7257),
-    ('sim s1', 'hybrid_friction_nocls'): (0.7071, 0.0000, 0.6768),
-    ('sim s1', 'pseudo_fusion'): (0.5858, 0.0000, 0.6897),
-    ('sim s1', 'pseudo_fusion_kbe'): (1.2594, 0.0000, 0.4486),
-    ('sim s1', 'pseudo_fusion_dbe'): (0.7380, 0.0000, 0.6894),
-    ('sim s1', 'pseudo_fusion_wbe'): (0.6682, 0.0000, 0.4880),
-    ('sim s1', 'gnss_magnetometer'): (1.3358, 0.0000, 0.3796),
-    ('sim s1', 'ensemble'): (0.4226, 0.0000, 0.6882),
+    ('sim s1', 'hybrid_friction'): (0.4356, 0.0000, 0.7210),
+    ('sim s1', 'hybrid_friction_nocls'): (0.7071, 0.0000, 0.6724),
+    ('sim s1', 'pseudo_fusion'): (0.5858, 0.0000, 0.6850),
+    ('sim s1', 'pseudo_fusion_kbe'): (1.2594, 0.0000, 0.4439),
+    ('sim s1', 'pseudo_fusion_dbe'): (0.7380, 0.0000, 0.6846),
+    ('sim s1', 'pseudo_fusion_wbe'): (0.6682, 0.0000, 0.4832),
+    ('sim s1', 'gnss_magnetometer'): (1.3358, 0.0000, 0.3783),
+    ('sim s1', 'ensemble'): (0.4226, 0.0000, 0.6834),
     ('sensor errors v1 own s3', 'zero'): (0.5022, 0.0000, 0.0000),
-    ('sensor errors v1 own s3', 'linear_kf'): (0.5582, 0.0000, 0.8177),
-    ('sensor errors v1 own s3', 'kinematic_heuristic'): (2.7427, 0.0000, 0.1757),
-    ('sensor errors v1 own s3', 'dk_ekf'): (0.6016, 0.0000, 0.8213),
-    ('sensor errors v1 own s3', 'd_ekf'): (0.3604, 0.0000, 0.6978),
+    ('sensor errors v1 own s3', 'linear_kf'): (0.5582, 0.0000, 0.0000),
+    ('sensor errors v1 own s3', 'kinematic_heuristic'): (2.7427, 0.0000, 0.1604),
+    ('sensor errors v1 own s3', 'dk_ekf'): (0.6016, 0.0000, 0.5893),
+    ('sensor errors v1 own s3', 'd_ekf'): (0.3604, 0.0000, 0.6490),
     ('sensor errors v1 own s3', 'k_kf'): (1.2127, 0.0000, 0.0000),
-    ('sensor errors v1 own s3', 'hybrid_friction'): (1.1437, 0.0000, 0.5051),
-    ('sensor errors v1 own s3', 'hybrid_friction_nocls'): (1.0726, 0.0000, 0.5108),
-    ('sensor errors v1 own s3', 'pseudo_fusion'): (1.1030, 0.0000, 0.6360),
-    ('sensor errors v1 own s3', 'pseudo_fusion_kbe'): (2.2088, 0.0000, 0.1019),
-    ('sensor errors v1 own s3', 'pseudo_fusion_dbe'): (0.6417, 0.0000, 0.6600),
-    ('sensor errors v1 own s3', 'pseudo_fusion_wbe'): (1.3981, 0.0000, 0.3619),
-    ('sensor errors v1 own s3', 'gnss_magnetometer'): (3.6602, 0.0000, 0.1014),
-    ('sensor errors v1 own s3', 'ensemble'): (0.7774, 0.0000, 0.6822),
+    ('sensor errors v1 own s3', 'hybrid_friction'): (1.1437, 0.0000, 0.4058),
+    ('sensor errors v1 own s3', 'hybrid_friction_nocls'): (1.0726, 0.0000, 0.4289),
+    ('sensor errors v1 own s3', 'pseudo_fusion'): (1.1030, 0.0000, 0.5175),
+    ('sensor errors v1 own s3', 'pseudo_fusion_kbe'): (2.2088, 0.0000, 0.0527),
+    ('sensor errors v1 own s3', 'pseudo_fusion_dbe'): (0.6417, 0.0000, 0.5449),
+    ('sensor errors v1 own s3', 'pseudo_fusion_wbe'): (1.3981, 0.0000, 0.3095),
+    ('sensor errors v1 own s3', 'gnss_magnetometer'): (3.6602, 0.0000, 0.0661),
+    ('sensor errors v1 own s3', 'ensemble'): (0.7774, 0.0000, 0.5384),
     ('profile errors v2 s3', 'zero'): (0.4660, 0.0000, 0.0000),
-    ('profile errors v2 s3', 'linear_kf'): (0.6498, 0.0000, 0.6226),
-    ('profile errors v2 s3', 'kinematic_heuristic'): (1.3515, 0.0000, 0.3319),
-    ('profile errors v2 s3', 'dk_ekf'): (0.7613, 0.0000, 0.6675),
-    ('profile errors v2 s3', 'd_ekf'): (0.4745, 0.0000, 0.8794),
+    ('profile errors v2 s3', 'linear_kf'): (0.6498, 0.0000, 0.0662),
+    ('profile errors v2 s3', 'kinematic_heuristic'): (1.3515, 0.0000, 0.3191),
+    ('profile errors v2 s3', 'dk_ekf'): (0.7613, 0.0000, 0.5595),
+    ('profile errors v2 s3', 'd_ekf'): (0.4745, 0.0000, 0.8359),
     ('profile errors v2 s3', 'k_kf'): (1.1218, 0.0000, 0.0000),
-    ('profile errors v2 s3', 'hybrid_friction'): (0.5669, 0.0000, 0.6227),
-    ('profile errors v2 s3', 'hybrid_friction_nocls'): (0.8076, 0.0000, 0.5929),
-    ('profile errors v2 s3', 'pseudo_fusion'): (0.6787, 0.0000, 0.5788),
-    ('profile errors v2 s3', 'pseudo_fusion_kbe'): (1.5837, 0.0000, 0.2704),
-    ('profile errors v2 s3', 'pseudo_fusion_dbe'): (0.7313, 0.0000, 0.6306),
-    ('profile errors v2 s3', 'pseudo_fusion_wbe'): (1.0514, 0.0000, 0.4830),
-    ('profile errors v2 s3', 'gnss_magnetometer'): (2.1982, 0.0000, 0.2584),
-    ('profile errors v2 s3', 'ensemble'): (0.4774, 0.0000, 0.6226),
+    ('profile errors v2 s3', 'hybrid_friction'): (0.5669, 0.0000, 0.5263),
+    ('profile errors v2 s3', 'hybrid_friction_nocls'): (0.8076, 0.0000, 0.5101),
+    ('profile errors v2 s3', 'pseudo_fusion'): (0.6787, 0.0000, 0.5016),
+    ('profile errors v2 s3', 'pseudo_fusion_kbe'): (1.5837, 0.0000, 0.2073),
+    ('profile errors v2 s3', 'pseudo_fusion_dbe'): (0.7313, 0.0000, 0.5319),
+    ('profile errors v2 s3', 'pseudo_fusion_wbe'): (1.0514, 0.0000, 0.4221),
+    ('profile errors v2 s3', 'gnss_magnetometer'): (2.1982, 0.0000, 0.2303),
+    ('profile errors v2 s3', 'ensemble'): (0.4774, 0.0000, 0.5281),
     ('limits v2', 'zero'): (5.8767, 0.0000, 0.0000),
-    ('limits v2', 'linear_kf'): (5.6860, 0.0000, 0.1422),
-    ('limits v2', 'kinematic_heuristic'): (4.9999, 0.0000, 0.0715),
-    ('limits v2', 'dk_ekf'): (4.4287, 0.0000, 0.1444),
+    ('limits v2', 'linear_kf'): (5.6860, 0.0000, 0.0972),
+    ('limits v2', 'kinematic_heuristic'): (4.9999, 0.0000, 0.0400),
+    ('limits v2', 'dk_ekf'): (4.4287, 0.0000, 0.1115),
     ('limits v2', 'd_ekf'): (4.7002, 0.0000, 0.1823),
     ('limits v2', 'k_kf'): (4.9151, 0.0000, 0.0000),
-    ('limits v2', 'hybrid_friction'): (4.7502, 0.0000, 0.1422),
-    ('limits v2', 'hybrid_friction_nocls'): (4.7502, 0.0000, 0.1422),
-    ('limits v2', 'pseudo_fusion'): (3.8115, 0.0000, 0.0865),
-    ('limits v2', 'pseudo_fusion_kbe'): (5.6612, 0.0000, 0.0708),
-    ('limits v2', 'pseudo_fusion_dbe'): (5.0045, 0.0000, 0.0708),
-    ('limits v2', 'pseudo_fusion_wbe'): (5.8385, 0.0000, 0.0708),
-    ('limits v2', 'gnss_magnetometer'): (1.1486, 0.0000, 0.1036),
-    ('limits v2', 'ensemble'): (4.1383, 0.0000, 0.1480),
+    ('limits v2', 'hybrid_friction'): (4.7502, 0.0000, 0.1115),
+    ('limits v2', 'hybrid_friction_nocls'): (4.7502, 0.0000, 0.1115),
+    ('limits v2', 'pseudo_fusion'): (3.8115, 0.0000, 0.0400),
+    ('limits v2', 'pseudo_fusion_kbe'): (5.6612, 0.0000, 0.0400),
+    ('limits v2', 'pseudo_fusion_dbe'): (5.0045, 0.0000, 0.0400),
+    ('limits v2', 'pseudo_fusion_wbe'): (5.8385, 0.0000, 0.0393),
+    ('limits v2', 'gnss_magnetometer'): (1.1486, 0.0000, 0.0679),
+    ('limits v2', 'ensemble'): (4.1383, 0.0000, 0.0407),
+    ('snippets limits v2', 'zero'): (6.4616, 0.0000, 0.0000),
+    ('snippets limits v2', 'linear_kf'): (6.2287, 0.0000, 0.0000),
+    ('snippets limits v2', 'kinematic_heuristic'): (4.3442, 0.0000, 0.0000),
+    ('snippets limits v2', 'dk_ekf'): (4.6657, 0.0000, 0.0000),
+    ('snippets limits v2', 'd_ekf'): (5.2361, 0.0794, 0.0243),
+    ('snippets limits v2', 'k_kf'): (5.1591, 0.0000, 0.0000),
+    ('snippets limits v2', 'hybrid_friction'): (6.4792, 0.0000, 0.0000),
+    ('snippets limits v2', 'hybrid_friction_nocls'): (6.4342, 0.0000, 0.0000),
+    ('snippets limits v2', 'pseudo_fusion'): (4.7132, 0.0000, 0.0000),
+    ('snippets limits v2', 'pseudo_fusion_kbe'): (5.3362, 0.0000, 0.0000),
+    ('snippets limits v2', 'pseudo_fusion_dbe'): (5.6140, 0.0000, 0.0000),
+    ('snippets limits v2', 'pseudo_fusion_wbe'): (6.6354, 0.0000, 0.0000),
+    ('snippets limits v2', 'gnss_magnetometer'): (6.8055, 0.0000, 0.0000),
+    ('snippets limits v2', 'ensemble'): (4.4682, 0.0000, 0.0000),
     ('real', 'zero'): (1.6922, 0.0000, 0.0000),
-    ('real', 'linear_kf'): (0.7533, 0.0000, 0.8959),
-    ('real', 'kinematic_heuristic'): (1.4872, 0.0000, 0.5660),
-    ('real', 'dk_ekf'): (0.5562, 0.0000, 0.9077),
+    ('real', 'linear_kf'): (0.7533, 0.0000, 0.7752),
+    ('real', 'kinematic_heuristic'): (1.4872, 0.0000, 0.5472),
+    ('real', 'dk_ekf'): (0.5562, 0.0000, 0.8808),
     ('real', 'd_ekf'): (0.5243, 0.0000, 0.9683),
     ('real', 'k_kf'): (0.8301, 0.0000, 0.0000),
-    ('real', 'hybrid_friction'): (0.5854, 0.0000, 0.9014),
-    ('real', 'hybrid_friction_nocls'): (0.5854, 0.0000, 0.9014),
-    ('real', 'pseudo_fusion'): (0.5780, 0.0000, 0.9038),
-    ('real', 'pseudo_fusion_kbe'): (1.0705, 0.0000, 0.7944),
-    ('real', 'pseudo_fusion_dbe'): (0.6191, 0.0000, 0.9043),
-    ('real', 'pseudo_fusion_wbe'): (2.5039, 0.0012, 0.5189),
+    ('real', 'hybrid_friction'): (0.5854, 0.0000, 0.8740),
+    ('real', 'hybrid_friction_nocls'): (0.5854, 0.0000, 0.8740),
+    ('real', 'pseudo_fusion'): (0.5780, 0.0000, 0.8769),
+    ('real', 'pseudo_fusion_kbe'): (1.0705, 0.0000, 0.7665),
+    ('real', 'pseudo_fusion_dbe'): (0.6191, 0.0000, 0.8773),
+    ('real', 'pseudo_fusion_wbe'): (2.5039, 0.0013, 0.4873),
     ('real', 'gnss_magnetometer'): (1.6922, 0.0000, 0.0000),
-    ('real', 'ensemble'): (0.5472, 0.0000, 0.9040),
+    ('real', 'ensemble'): (0.5472, 0.0000, 0.8769),
 }
 
 
@@ -184,6 +208,11 @@ def blocks(tmp_path_factory) -> dict[str, list[LogCase]]:
         simulate_to_files(name, folder, seed=LIMITS_SEED)
     found[LIMITS_BLOCK] = [LogCase(n, folder / f"{n}.log", folder / f"{n}.truth.csv")
                            for n in LIMITS_SHORT]
+    # ... replayed from 2, 5 and 9 s into the drive (benchmarks.accuracy's ``snippets``): every
+    # learnt level starts fresh inside the slide
+    from benchmarks.accuracy import snippets
+
+    found[SNIPPETS_BLOCK] = snippets(found[LIMITS_BLOCK], tmp_path_factory.mktemp("snippets"))
     if REAL_CSV.exists():
         from benchmarks.accuracy import REAL_IMPORT
         from slipd.profile import load_profile

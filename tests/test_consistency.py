@@ -137,19 +137,20 @@ def twin(state: dict, u, out, witness, params, vehicle, dt) -> None:
 
 
 def twin_innovation_ratio(level: dict, nis: float, params, dt: float) -> float:
-    """A filter's NIS over its own geometric-mean level (``level``: that filter's)."""
+    """A filter's NIS over its own geometric-mean level (``level``: that filter's), which
+    starts at the prior."""
     if not (math.isfinite(nis) and nis > 0.0):
         return 0.0
     gain = min(1.0, dt / params[P.NIS_LEVEL_TIME_CONSTANT])
-    log_nis = math.log(nis)
-    if level["seen"] >= params[P.NIS_LEVEL_MIN_TIME]:  # an anomaly teaches it little
-        log_nis = min(log_nis, level["log_sum"] / level["weight"]
-                      + level["weight"] * math.log(params[P.NIS_LEVEL_CLIP_RATIO]))
+    if level["weight"] == 0.0:  # the prior, worth NIS_LEVEL_PRIOR_TIME of ticks
+        level["weight"] = 1.0 - (1.0 - gain) ** (params[P.NIS_LEVEL_PRIOR_TIME] / dt)
+        level["log_sum"] = level["weight"] * math.log(params[P.NIS_LEVEL_PRIOR])
+    # an anomaly teaches it little: at most CLIP_RATIO per time constant
+    log_nis = min(math.log(nis), level["log_sum"] / level["weight"]
+                  + level["weight"] * math.log(params[P.NIS_LEVEL_CLIP_RATIO]))
     level["log_sum"] += gain * (log_nis - level["log_sum"])
     level["weight"] += gain * (1.0 - level["weight"])
     level["seen"] += dt
-    if level["seen"] < params[P.NIS_LEVEL_MIN_TIME]:
-        return 0.0
     return nis / math.exp(level["log_sum"] / level["weight"])
 
 
@@ -220,7 +221,8 @@ def test_an_innovation_burst_clears_valid_and_a_noisier_car_does_not(drive):
     """A Kalman filter whose innovations jump far above the level it keeps on this car (its
     model stopped explaining the measurements) loses VALID while they do, with the INNOVATION
     flag; the same filter on a car whose NIS is ten times higher throughout (more sensor
-    noise than the paper's R) is judged against that level, so it keeps what it had."""
+    noise than the paper's R) is judged against that level, so it keeps its VALID (DEGRADED
+    while its level rises from the prior, at most tenfold per time constant)."""
     U, _, witness_out = drive
     none = np.full_like(witness_out, np.nan)
     params = C.default_params()
@@ -231,7 +233,8 @@ def test_an_innovation_burst_clears_valid_and_a_noisier_car_does_not(drive):
     valid = (burst[:, Out.STATUS].astype(int) & Status.VALID) != 0
     assert valid[550:600].all() and not valid[600:700].any()
     noisier, _ = _agree(U, _with_nis_burst(witness_out, 0, len(U), 10.0), none, params)
-    assert np.array_equal(noisier[:, Out.STATUS], base[:, Out.STATUS])
+    assert np.array_equal(noisier[:, Out.STATUS].astype(int) & Status.VALID,
+                          base[:, Out.STATUS].astype(int) & Status.VALID)
     state = C.new_state()
     out = _with_nis_burst(witness_out, 600, 700, 1000.0)[:650].copy()
     C.monitor_ticks(state, U[:650], out, none[:650], params, VEHICLE, np.full(650, 0.01))
@@ -445,6 +448,30 @@ def test_a_failure_that_has_passed_does_not_keep_the_method_failed(drive):
     assert failed < 310
     settled = failed + int((params[P.FREE_RUN_TIME] + params[P.RECOVERY_TIME]) / 0.01) + 100
     assert settled < len(U) - 200 and valid[settled:].mean() > 0.9
+
+
+def test_a_drive_that_begins_in_an_inconsistency_does_not_teach_the_level_it(drive):
+    """A fresh level starts at the prior (a consistent filter's NIS, 1) and rises from it at
+    most tenfold per time constant, so a filter whose innovations are 300 x that from its
+    first tick (a log replayed from the middle of a slide, a daemon started in one) is not
+    VALID while they last, and VALID again after. Learnt from the first ticks (the prior
+    worth nothing), the level became the slide's and the filter stayed VALID through it: on
+    logs cut 2-9 s into the limits block's drives, up to 100 % of a method's VALID ticks more
+    than 5 deg off."""
+    U, _, witness_out = drive
+    none = np.full_like(witness_out, np.nan)
+    params = C.default_params()
+    slide = _with_nis_burst(witness_out, 0, 600, 300.0)
+    out, plain = _agree(U, slide, none, params)
+    assert np.array_equal(out[:, Out.STATUS], plain[:, Out.STATUS])
+    valid = (out[:, Out.STATUS].astype(int) & Status.VALID) != 0
+    converged = int(np.argmax((witness_out[:, Out.STATUS].astype(int) & NOT_RUNNING) == 0))
+    assert converged < 300 and not valid[:600].any()
+    assert valid[600 + round(params[P.RECOVERY_TIME] / 0.01) + 10:].mean() > 0.9
+    # a level that the slide taught (as the first ticks did before: the slide's own)
+    params[P.NIS_LEVEL_PRIOR] = float(np.nanmedian(slide[converged:600, Out.NIS]))
+    learnt, _ = _agree(U, slide, none, params)
+    assert ((learnt[converged:600, Out.STATUS].astype(int) & Status.VALID) != 0).mean() > 0.5
 
 
 def test_an_inconsistency_early_in_a_drive_does_not_become_the_level_either(drive):
