@@ -23,6 +23,7 @@ recording's ticks (``steps_per_tick``).
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 
 import numpy as np
@@ -91,12 +92,32 @@ class Pipeline:
 
     @property
     def persistent_slots(self) -> dict[str, int]:
-        """{element name: state index} of what the daemon keeps across restarts (learnt
-        offsets, calibrations; the method's PERSISTENT); empty when nothing persists."""
+        """{element name: state index} of what the daemon keeps across restarts: the method's
+        learnt offsets and calibrations (its PERSISTENT) and the consistency monitor's
+        innovation levels on this car (``CONSISTENCY.``, consistency.PERSISTENT: a fresh one
+        starts at the prior and takes tens of seconds to learn a car whose level is far above
+        it); empty when nothing persists."""
+        slots: dict[str, int] = {}
         layout = self.method.layout
-        if layout is None or not self.method.persistent:
-            return {}
-        return {layout.element_names[i]: i for i in layout.indices(self.method.persistent)}
+        if layout is not None and self.method.persistent:
+            slots = {layout.element_names[i]: i for i in layout.indices(self.method.persistent)}
+        if self.monitor:
+            start = self._method_size + self._witness_size
+            monitor = consistency.LAYOUT
+            slots.update({f"CONSISTENCY.{monitor.element_names[i]}": start + i
+                          for i in monitor.indices(consistency.PERSISTENT)})
+        return slots
+
+    @property
+    def persistence_hash(self) -> str:
+        """The identity of the persisted slots' layout: the method's state layout's hash, and
+        the monitor's with it when the monitor runs (a value is never restored into a slot
+        that means something else)."""
+        method_hash = self.method.layout.hash if self.method.layout is not None else ""
+        if not self.monitor:
+            return method_hash
+        digest = hashlib.sha256(f"{method_hash}\n{consistency.LAYOUT.hash}".encode())
+        return digest.hexdigest()[:12]
 
     def new_state(self) -> np.ndarray:
         """[method | witness | monitor] (the method's part first: persisted slots index it)."""

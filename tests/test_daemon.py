@@ -310,7 +310,7 @@ def test_sigterm_saves_learned_offsets_and_a_restart_restores_them(tmp_path):
     assert 0.0 < learned < gyro_offset  # learning towards the offset (150 s settling)
     saved = json.loads((tmp_path / "state.json").read_text())
     assert saved["method"] == "kinematic_heuristic"
-    assert saved["layout"] == daemon.pipeline.layout.hash
+    assert saved["layout"] == daemon.pipeline.persistence_hash
     assert saved["state"]["OFFSETS.YAW_RATE"] == learned
 
     messages = []

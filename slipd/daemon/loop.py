@@ -443,7 +443,7 @@ class Daemon:
         slots = self.pipeline.persistent_slots
         if not slots:
             return "state persistence: the estimator keeps nothing across restarts"
-        values, message = self.store.load(self.config.estimator, self.pipeline.layout.hash)
+        values, message = self.store.load(self.config.estimator, self.pipeline.persistence_hash)
         values, rejected = plausible_state({k: v for k, v in values.items() if k in slots})
         for name, value in values.items():
             self.state[slots[name]] = value
@@ -460,7 +460,7 @@ class Daemon:
             return
         values = {name: float(self.state[index]) for name, index in slots.items()}
         try:
-            self.store.save(self.config.estimator, self.pipeline.layout.hash, values)
+            self.store.save(self.config.estimator, self.pipeline.persistence_hash, values)
         except OSError as exc:
             self.log(f"slipd: cannot save state to {self.store.path}: {exc}")
 

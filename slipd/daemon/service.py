@@ -357,6 +357,12 @@ ACCEL_OFFSET_LIMIT = 2.0
 #: uT: magnetometer calibration terms (Yoon's C, field components with soft and hard iron):
 #: past a MEMS magnetometer's full scale (+-1300 uT), which no learnt term can exceed.
 MAG_FIELD_LIMIT = 1300.0
+#: the consistency monitor's innovation levels: a forgotten sum of ln NIS and of its weights
+#: (level = exp(sum / weight), weight < 1). A level of 1e6 per measurement (innovations 1000
+#: sigma) is one no filter that tracks keeps; a weight beyond 1 no sum of forgotten weights
+#: reaches. A sum restored without its weight (or the reverse) leaves the level at the prior
+#: or nearer to it: stricter, never more lenient.
+LOG_NIS_LEVEL_LIMIT = math.log(1e6)
 PLAUSIBLE_STATE = (
     # (element name, bound, unit, what it is)
     (re.compile(r"OFFSETS\.(YAW|ROLL|PITCH)_RATE|YAW_RATE_BIAS"), GYRO_OFFSET_LIMIT, "rad/s",
@@ -365,6 +371,10 @@ PLAUSIBLE_STATE = (
     (re.compile(r"CAL_C\[[0-8]\]"), MAG_FIELD_LIMIT, "uT", "a magnetometer calibration term"),
     (re.compile(r"CAL_P\[[0-8]\]"), MAG_FIELD_LIMIT ** 2, "uT^2",
      "a calibration covariance term"),
+    (re.compile(r"CONSISTENCY\.(WITNESS_)?LOG_NIS_SUM"), LOG_NIS_LEVEL_LIMIT, "ln(NIS)",
+     "an innovation level's sum of ln NIS"),
+    (re.compile(r"CONSISTENCY\.(WITNESS_)?LOG_NIS_WEIGHT"), 1.0, "(weight)",
+     "an innovation level's weight"),
 )
 #: 3 x 3 covariance blocks (row-major): restored whole, symmetric and positive semidefinite,
 #: or not at all (a half-restored or indefinite covariance breaks the least squares).

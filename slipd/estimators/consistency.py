@@ -269,6 +269,10 @@ LAYOUT = build_layout(
     "WITNESS_RECOVERY",  # s the witness still has to stay within NIS_RATIO_WARN to vouch again
 )
 S = LAYOUT.S
+#: what the daemon keeps across restarts (slipd.pipeline's persistent_slots): the innovation
+#: levels on this car, which a fresh state learns from the prior at most tenfold per time
+#: constant (the real run's ~24: ~40 s)
+PERSISTENT = ("LOG_NIS_SUM", "LOG_NIS_WEIGHT", "WITNESS_LOG_NIS_SUM", "WITNESS_LOG_NIS_WEIGHT")
 # the innovation test's level: three consecutive slots (sum, weight, seen) per filter it watches
 _METHOD_NIS_LEVEL = int(S.LOG_NIS_SUM)
 _WITNESS_NIS_LEVEL = int(S.WITNESS_LOG_NIS_SUM)
