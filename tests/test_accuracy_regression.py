@@ -294,3 +294,22 @@ def test_pooling_here_is_the_evaluators(blocks):
         again.merge(part.pooled["zero"])
     assert again.scores().beta_rms_deg == pytest.approx(
         case.pooled["zero"].scores().beta_rms_deg, rel=1e-12)
+
+
+def test_the_snippets_start_where_they_say_and_keep_the_whole_truth(blocks):
+    """benchmarks.accuracy's snippets: each drive replayed from each start (its frames from
+    then on, unchanged), scored against the drive's whole truth."""
+    from benchmarks.accuracy import SNIPPET_STARTS
+    from slipd.replay.candump import read_candump
+
+    whole = {case.name: case for case in blocks[LIMITS_BLOCK]}
+    cut = blocks[SNIPPETS_BLOCK]
+    assert [c.name for c in cut] == [f"{n}@{s:g}s" for n in whole for s in SNIPPET_STARTS]
+    for case in cut:
+        name, _, start = case.name.partition("@")
+        source = read_candump(whole[name].log)
+        snippet = read_candump(case.log)
+        keep = source.t >= source.t[0] + float(start[:-1])
+        assert case.truth == whole[name].truth
+        assert snippet.t[0] - source.t[0] >= float(start[:-1])
+        assert (snippet.t == source.t[keep]).all() and (snippet.data == source.data[keep]).all()
