@@ -180,6 +180,13 @@ def simulate_limits(folder: Path, seed: int, vehicle: int) -> Path:
     return folder
 
 
+def limits_logs(cache: Path, vehicle: int) -> list[LogCase]:
+    """The limits block's drives of car ``vehicle`` (LIMITS_SEED), simulated once into
+    ``cache``."""
+    return suite_logs(simulate_limits(cache / f"limits_v{vehicle}_s{LIMITS_SEED}", LIMITS_SEED,
+                                      vehicle))
+
+
 def snippets(logs: list[LogCase], folder: Path) -> list[LogCase]:
     """Each of ``logs`` replayed from each of SNIPPET_STARTS seconds after its first frame
     (written once into ``folder`` as NAME@STARTs.log), scored against its whole truth (the
@@ -420,10 +427,8 @@ def main(argv: list[str] | None = None) -> int:
     if "limits" in blocks:
         order.append("limits")
         for vehicle in LIMITS_VEHICLES:
-            folder = simulate_limits(args.cache / f"limits_v{vehicle}_s{LIMITS_SEED}",
-                                     LIMITS_SEED, vehicle)
-            jobs.append(("limits", suite_logs(folder), methods, own_profile(args.cache, vehicle),
-                         None, f"limits v{vehicle}"))
+            jobs.append(("limits", limits_logs(args.cache, vehicle), methods,
+                         own_profile(args.cache, vehicle), None, f"limits v{vehicle}"))
 
     if "snippets" in blocks:
         order.append("snippets")
@@ -432,11 +437,9 @@ def main(argv: list[str] | None = None) -> int:
         jobs.append(("snippets", snippets(suite, args.cache / "snippets_suite_s1"), methods,
                      "default", None, "snippets suite s1"))
         for vehicle in LIMITS_VEHICLES:
-            folder = simulate_limits(args.cache / f"limits_v{vehicle}_s{LIMITS_SEED}",
-                                     LIMITS_SEED, vehicle)
-            jobs.append(("snippets", snippets(suite_logs(folder), args.cache
-                                              / f"snippets_limits_v{vehicle}_s{LIMITS_SEED}"),
-                         methods, own_profile(args.cache, vehicle), None,
+            cut = snippets(limits_logs(args.cache, vehicle),
+                           args.cache / f"snippets_limits_v{vehicle}_s{LIMITS_SEED}")
+            jobs.append(("snippets", cut, methods, own_profile(args.cache, vehicle), None,
                          f"snippets limits v{vehicle}"))
 
     results: dict[str, list[CaseResult]] = {b: [] for b in order}

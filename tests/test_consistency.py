@@ -150,15 +150,14 @@ def twin_innovation_ratio(level: dict, nis: float, params, dt: float) -> float:
                   + level["weight"] * math.log(params[P.NIS_LEVEL_CLIP_RATIO]))
     level["log_sum"] += gain * (log_nis - level["log_sum"])
     level["weight"] += gain * (1.0 - level["weight"])
-    level["seen"] += dt
     return nis / math.exp(level["log_sum"] / level["weight"])
 
 
 def new_twin_state() -> dict:
     return dict(d_yaw=None, ay_lp=None, anchored=False, kvx=0.0, kvy=0.0, free_run=0.0,
                 recovery=0.0, witness_recovery=0.0, flags=0,
-                nis=dict(log_sum=0.0, weight=0.0, seen=0.0),
-                witness_nis=dict(log_sum=0.0, weight=0.0, seen=0.0))
+                nis=dict(log_sum=0.0, weight=0.0),
+                witness_nis=dict(log_sum=0.0, weight=0.0))
 
 
 @pytest.fixture(scope="module")

@@ -260,11 +260,9 @@ LAYOUT = build_layout(
     "SPEED_ERROR",  # m/s, vx_K - vx
     "LOG_NIS_SUM",  # the innovation test's level: forgotten sum of ln NIS ...
     "LOG_NIS_WEIGHT",  # ... and of the weights (level = exp(sum / weight))
-    "NIS_SEEN",  # s of checked ticks with a finite NIS (diagnostics)
     "NIS_RATIO",  # the last NIS / level (diagnostics)
     "WITNESS_LOG_NIS_SUM",  # the same level of the dynamic witness's own NIS ...
     "WITNESS_LOG_NIS_WEIGHT",
-    "WITNESS_NIS_SEEN",
     "WITNESS_NIS_RATIO",  # ... and its last ratio (diagnostics)
     "WITNESS_RECOVERY",  # s the witness still has to stay within NIS_RATIO_WARN to vouch again
 )
@@ -273,12 +271,11 @@ S = LAYOUT.S
 #: levels on this car, which a fresh state learns from the prior at most tenfold per time
 #: constant (the real run's ~24: ~40 s)
 PERSISTENT = ("LOG_NIS_SUM", "LOG_NIS_WEIGHT", "WITNESS_LOG_NIS_SUM", "WITNESS_LOG_NIS_WEIGHT")
-# the innovation test's level: three consecutive slots (sum, weight, seen) per filter it watches
+# the innovation test's level: two consecutive slots (sum, weight) per filter it watches
 _METHOD_NIS_LEVEL = int(S.LOG_NIS_SUM)
 _WITNESS_NIS_LEVEL = int(S.WITNESS_LOG_NIS_SUM)
 for _level in (_METHOD_NIS_LEVEL, _WITNESS_NIS_LEVEL):
     assert LAYOUT.element_names[_level + 1].endswith("LOG_NIS_WEIGHT")
-    assert LAYOUT.element_names[_level + 2].endswith("NIS_SEEN")
 _NOT_RUNNING = ST_NOT_CONVERGED | ST_RESET | ST_UNAVAILABLE
 
 
@@ -320,7 +317,7 @@ def witness_sigma(ay_abs, params, vehicle):
 
 @nb.njit(cache=True, inline="always")
 def _log_nis_level(state, level):
-    """ln of the level kept from slot ``level`` on (LOG_NIS_SUM, LOG_NIS_WEIGHT, NIS_SEEN):
+    """ln of the level kept from slot ``level`` on (LOG_NIS_SUM, LOG_NIS_WEIGHT):
     the forgotten sum bias-corrected by its weight (a mean of what was seen so far while less
     than a time constant has been)."""
     return state[level] / state[level + 1]
@@ -335,7 +332,7 @@ def innovation_ratio(state, nis, params, dt, level=_METHOD_NIS_LEVEL):
     NIS_LEVEL_PRIOR_TIME seconds of history."""
     if not (math.isfinite(nis) and nis > 0.0):
         return 0.0
-    log_sum, weight, seen = level, level + 1, level + 2
+    log_sum, weight = level, level + 1
     gain = min(1.0, dt / params[PARAMS.NIS_LEVEL_TIME_CONSTANT])
     if state[weight] <= 0.0:
         # a fresh level (a new state, a reset): the prior, weighted as the history it stands
@@ -355,7 +352,6 @@ def innovation_ratio(state, nis, params, dt, level=_METHOD_NIS_LEVEL):
                   * math.log(params[PARAMS.NIS_LEVEL_CLIP_RATIO]))
     state[log_sum] += gain * (log_nis - state[log_sum])
     state[weight] += gain * (1.0 - state[weight])
-    state[seen] += dt
     return nis / math.exp(_log_nis_level(state, level))
 
 
